@@ -566,7 +566,7 @@ def _wrap_parts(backend: str) -> dict:
     from sim_core.batch.line_search import CopyLineSearch
 
     parts = [(lockstep.LockstepSolver, n) for n in ("_stacked_gradient", "_direction", "_device_operator")]
-    parts += [(CopyLineSearch, n) for n in ("_line_search_copies", "_energy_with")]
+    parts += [(CopyLineSearch, n) for n in ("_line_search_copies", "_backtrack_on_device", "_energy_with")]
     parts += [(NewtonSolver, n) for n in ("_set_up_step", "_finish_step", "_assemble_hessian", "_energy")]
     parts += [(ContactSet, n) for n in ("potentials", "begin_step", "friction", "end_step")]
     parts += [(FusedElastic, n) for n in ("_evaluate", "energy", "projected_hessian_values",
@@ -679,6 +679,22 @@ def _wrap_parts(backend: str) -> dict:
                                                    timers["ContactSet._search_position"]))
     for name in ("_search_position", "_candidate_pairs", "_search"):
         _time_within(timers, CopyLineSearch, "_line_search_copies", ContactSet, name)
+    # a trial point's own parts (the line search's time by part: its positions, contact potentials, gradient, energies,
+    # the slope read or the device backtrack's decision)
+    within = [(ContactSet, "potentials"), (ContactSet, "covers"), (PairBatch, "evaluate"),
+              (CopyLineSearch, "_launch_copy_energies")]
+    if backend != "numpy":
+        within += [(DeviceIterates, n) for n in ("gradient", "trial", "trial_by")]
+        within += [(CopyVectors, "scalars")]
+        from importlib.util import find_spec
+
+        if find_spec("sim_core.ti_kernels.backtrack") is not None:  # (a tree with the device backtrack)
+            from sim_core.ti_kernels.backtrack import DeviceBacktrack
+
+            within += [(DeviceBacktrack, "decide"), (DeviceBacktrack, "start")]
+    for cls, name in within:
+        if name in vars(cls):
+            _time_within(timers, CopyLineSearch, "_line_search_copies", cls, name)
     timers.update(_count_taichi_calls())
     # module functions the contact set calls by the names it imported
     for name in ("lookup_pairs", "merge_rows"):

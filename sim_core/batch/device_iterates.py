@@ -32,6 +32,7 @@ class DeviceIterates(CopyVectors):
         super().__init__(index)
         blocks = PinnedBlocks((max(self.vertex_count, 1), 3))  # the shape of the device arrays (new_vectors)
         self.trial_blocks: PinnedBlocks | None = blocks if blocks.page_locked else None
+        self._backtrack = None  # the line search's DeviceBacktrack (backtrack)
 
     def start(self, x: np.ndarray) -> Iterate:
         """The first iterate: ``x`` ``(N, 3)`` (a new array of the caller's, frozen) and its upload."""
@@ -41,7 +42,25 @@ class DeviceIterates(CopyVectors):
         """``x + alpha_i d`` on copy ``i``'s vertices (``alphas`` ``(B,)``), made on the device and downloaded once
         into a frozen host array: over a block of :attr:`trial_blocks` (registered with
         :meth:`~sim_core.energies.base.FrozenPositionsKey.register`) where set, else a new array of its own."""
-        device = self.moved(x.device, d, alphas)
+        return self._downloaded(self.moved(x.device, d, alphas))
+
+    def trial_by(self, x: Iterate, d, alphas) -> Iterate:
+        """:meth:`trial` with the step sizes on the device (``alphas``: a float64 ndarray whose first ``B`` entries are
+        the copies', :meth:`~sim_core.ti_kernels.copy_vectors.CopyVectors.moved_by`): nothing sent."""
+        return self._downloaded(self.moved_by(x.device, d, alphas))
+
+    @property
+    def backtrack(self):
+        """The line search's per-copy backtrack on the device
+        (:class:`~sim_core.ti_kernels.backtrack.DeviceBacktrack`, made at the first use)."""
+        if self._backtrack is None:
+            from sim_core.ti_kernels.backtrack import DeviceBacktrack
+
+            self._backtrack = DeviceBacktrack(self.copies)
+        return self._backtrack
+
+    def _downloaded(self, device) -> Iterate:
+        """The :class:`Iterate` of the trial positions ``device`` (:meth:`trial`'s download)."""
         if self.trial_blocks is None:
             return Iterate(frozen(self.download(device)), device)
         return Iterate(FrozenPositionsKey.register(self.download(device, self.trial_blocks.take())), device)

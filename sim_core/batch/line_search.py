@@ -7,7 +7,10 @@ slope test's per-copy dot products are read back as ``(B,)`` arrays, with each t
 next Newton iteration's force test, where the trial is accepted) in the same read; on the device, where each copy has
 its own energy, the trial point's per-copy energies are launched before that read and come back in it too (one copy
 back a trial point for the slope and Armijo tests; the energies are then measured even where no copy passes the slope
-test, which changes no result).
+test, which changes no result). From a line search's second trial point on, the tests, acceptances and halvings can be
+decided on the device (:attr:`CopyLineSearch.device_backtrack`, :class:`~sim_core.ti_kernels.backtrack.DeviceBacktrack`:
+the next step sizes are never sent); it pays only where no host term adds energy (today the contact pairs' penalties
+are summed on the host from the pair batch's active list, so their energies would travel up instead of the steps).
 """
 
 from __future__ import annotations
@@ -19,10 +22,27 @@ from sim_core.energies.base import CopyEnergies, DeviceCopyEnergies, declares
 from sim_core.step_info import StepInfo
 
 
+def armijo_accepts(candidates: np.ndarray, energy: np.ndarray, e0: np.ndarray, step: np.ndarray, slope: np.ndarray,
+                   armijo_c: float) -> np.ndarray:
+    """The copies of ``candidates`` (bool ``(B,)``, those that passed the slope test) that pass their own Armijo
+    condition ``E_i(x + a_i d) - E_i(x) <= c a_i g_i.d_i + 1e-14 |E_i(x)|`` (``energy`` the trial's and ``e0`` the
+    start's energies, J; ``step`` the steps ``a_i``; ``slope`` ``g_i.d_i``; NaN fails), bool ``(B,)``: the host's test,
+    which :func:`sim_core.ti_kernels.backtrack._decide` makes on the device in the same operations."""
+    return candidates & (energy - e0 <= armijo_c * step * slope + 1e-14 * np.abs(e0))
+
+
 class CopyLineSearch:
     """The per-copy line search of :class:`~sim_core.batch.lockstep.LockstepSolver` (which provides ``config``,
     ``scene``, ``contact``, ``_vectors``, ``_copy_of_vertex``, ``_copy_sums``, ``_trial_energy``, ``_energy`` and
     ``_stacked_gradient``)."""
+
+    device_backtrack: str = "auto"
+    """Where the line search's trial points after the first are decided when the vectors and every term's per-copy
+    energies are on the device: ``"always"`` there (:meth:`_backtrack_on_device`), ``"never"`` on the host (one read
+    of the slopes and energies a trial point, the next step sizes sent), ``"auto"`` there where the first trial
+    point's host terms had no energy (no contact pair in reach: then a trial point sends nothing; else each would
+    send the host terms' energies, one upload a trial point as the host's step sizes are, plus the state once). The
+    same results bit for bit."""
 
     def _line_search_copies(self, step, x: Iterate, d, alpha: np.ndarray, slope: np.ndarray, open_: np.ndarray,
                             contact_terms: list, x_search: np.ndarray | None, info: StepInfo):
@@ -56,6 +76,7 @@ class CopyLineSearch:
             if e0 is None:
                 e0 = self._energy(step, x.host, contact_terms, x_search)
         per_copy = isinstance(e0, np.ndarray)  # each copy's own energy (else one stacked sum: the Armijo groups)
+        device = per_copy and x.device is not None and self.device_backtrack != "never"  # further trials there
         e_new = e0  # per copy: the energy where each copy stands after the accepted steps
         pending = open_ & (alpha > 0)
         accepted = open_ & (alpha == 0)
@@ -64,7 +85,7 @@ class CopyLineSearch:
         backtracks = np.zeros(B, dtype=np.int64)
         bound = (1.0 - 2.0 * cfg.armijo_c) * np.abs(slope)
         last = None  # (alphas, x, (terms, x_search, g)) of the last evaluated trial
-        for _ in range(cfg.max_backtracks):
+        for k in range(cfg.max_backtracks):
             if not pending.any():
                 break
             trial = np.where(pending, a, 0.0) + taken
@@ -83,7 +104,7 @@ class CopyLineSearch:
             if per_copy and cand.any():  # each copy's Armijo test on its own energy
                 if e_try is None:
                     e_try = self._copy_energies(step, x_try.host, terms, xs, x_try.device)
-                ok = cand & (e_try - e0 <= cfg.armijo_c * a * slope + 1e-14 * np.abs(e0))
+                ok = armijo_accepts(cand, e_try, e0, a, slope, cfg.armijo_c)
                 e_new = np.where(ok, e_try, e_new)
                 accepted |= ok
                 taken[ok] = a[ok]
@@ -103,13 +124,57 @@ class CopyLineSearch:
             backtracks[pending] += 1
             info.backtracks += int(pending.sum())
             a[pending] *= 0.5
+            if (device and launched is not None and pending.any() and k + 1 < cfg.max_backtracks
+                    and (self.device_backtrack == "always" or not (np.any(launched[0])
+                                                                   or np.any(launched[1].host_values)))):
+                search = vectors.backtrack  # the state up in the upload that the next trial's steps would take
+                trial = search.start(e0, slope, bound, a, pending, accepted, taken, e_new, backtracks)
+                return self._backtrack_on_device(step, x, d, cfg.max_backtracks - k - 1, trial, last, info)
+        return self._line_search_end(step, x, d, last, taken, e_new, accepted, backtracks, info)
+
+    def _backtrack_on_device(self, step, x: Iterate, d, trials: int, trial: np.ndarray, last, info: StepInfo):
+        """:meth:`_line_search_copies`' further trial points (at most ``trials``, the first at the steps ``trial``
+        ``(B,)``) where the vectors and every term's per-copy energies are on the device and the state is in
+        :attr:`~sim_core.batch.device_iterates.DeviceIterates.backtrack`: each trial point's slope and Armijo tests,
+        acceptances, halvings and next step sizes decided there (:class:`~sim_core.ti_kernels.backtrack.DeviceBacktrack`,
+        the host branch's :func:`armijo_accepts` and halvings bit for bit), so that a trial point sends no step sizes
+        and reads one array back (the host terms' energies sent where one is not zero); ``last``: the last trial
+        evaluated on the host. Same results as :meth:`_line_search_copies`."""
+        cfg = self.config
+        vectors = self._vectors
+        search = vectors.backtrack
+        for _ in range(trials):
+            x_try = vectors.trial_by(x, d, search.state)
+            terms, xs, g_try = self._stacked_gradient(step, x_try, info, x.host)  # a search covering the segment
+            launched = self._launch_copy_energies(step, x_try.host, terms, xs, x_try.device)
+            if launched is None:
+                raise RuntimeError("CopyLineSearch: a trial point's contact terms cannot split their energy by copy "
+                                   "where the line search's start could")
+            host_energies, sums = launched
+            device_sums = vectors.launch_scalars(g_try, d, sums)
+            out = search.decide(vectors.scalars_out, device_sums is not None, host_energies, sums.host_values,
+                                cfg.armijo_c)
+            last = (trial, x_try, (terms, xs, g_try, out["largest"]))
+            trial = out["alpha"]
+            info.backtracks += out["halved"]
+            if not out["pending"].any():
+                break
+        return self._line_search_end(step, x, d, last, out["taken"], out["energy"], out["accepted"], out["backtracks"],
+                                     info)
+
+    def _line_search_end(self, step, x: Iterate, d, last, taken: np.ndarray, e_new, accepted: np.ndarray,
+                         backtracks: np.ndarray, info: StepInfo):
+        """:meth:`_line_search_copies`' result from its ``last`` evaluated trial (or None) and the copies' accepted
+        steps ``taken`` ``(B,)``: that trial where its steps are ``taken``, else the point ``x + taken d`` and its
+        gradient; the energies ``e_new`` where the copies stand are kept for the next line search where per copy."""
+        vectors = self._vectors
         if last is not None and np.array_equal(last[0], taken):
             x_new, (terms, xs, g_new, g_max) = last[1], last[2]
         else:
             x_new = vectors.trial(x, d, taken)
             terms, xs, g_new = self._stacked_gradient(step, x_new, info, x.host)
             g_max = None
-        if per_copy:  # a copy's energy depends on its own positions only: x_new's, per copy, are those measured
+        if isinstance(e_new, np.ndarray):  # a copy's energy depends on its own positions only: x_new's, per copy
             self._trial_energy = (x_new.host, terms, e_new)
         return x_new, (x_new, g_new, g_max), terms, xs, accepted, backtracks
 

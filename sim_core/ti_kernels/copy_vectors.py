@@ -125,6 +125,8 @@ def _extremes(a: _VEC, out: _I64, order: _I32, start: _I32, copies: ti.i32, vert
 
 
 _SCALARS = 7  # rows of _scalars' output: dot, |a| max, a NaN, |b| max, b NaN, |b_v|^2 max, b_v not finite
+SCALARS = _SCALARS
+"""Rows of :meth:`CopyVectors.launch_scalars`' output before its extra row (the per-copy sums read with them)."""
 
 
 @fast_kernel
@@ -404,6 +406,12 @@ class CopySums:
         (:attr:`values` is then the host array)."""
         return self._device_sums()
 
+    @property
+    def host_values(self) -> np.ndarray:
+        """The values added on the host (:meth:`add`), float64 ``(B,)`` (J; the array itself: :meth:`read` adds it to
+        the device sums)."""
+        return self._host
+
     def read(self, device_read: np.ndarray | None = None) -> np.ndarray:
         """The sums, float64 ``(B,)`` (J), a new array (on a GPU one copy back, after the kernels before it).
         ``device_read``: :attr:`device_values` already read back (float64 ``(B,)``, e.g. in one copy with other
@@ -531,8 +539,14 @@ class CopyVectors:
 
     def moved(self, x, d, alphas: np.ndarray):
         """A new ndarray ``x + alpha_i d`` on copy ``i``'s vertices (``alphas`` ``(B,)``)."""
+        return self.moved_by(x, d, self._copy_values(alphas))
+
+    def moved_by(self, x, d, alphas):
+        """:meth:`moved` with the step sizes already on the device: ``alphas`` a float64 ndarray whose first ``B``
+        entries are copy ``i``'s (e.g. the row :data:`~sim_core.ti_kernels.backtrack.ALPHA` of a
+        :class:`~sim_core.ti_kernels.backtrack.DeviceBacktrack`'s state): no upload."""
         out = self.new()
-        _moved(x, d, self._copy_values(alphas), self._vertex_copy, out, self.vertex_count)
+        _moved(x, d, alphas, self._vertex_copy, out, self.vertex_count)
         return out
 
     def dot(self, a, b) -> np.ndarray:
@@ -547,10 +561,7 @@ class CopyVectors:
         update together). With ``sums`` (a :class:`CopySums` of the ``B`` copies), a fifth entry: its
         :meth:`CopySums.read`, its device sums read back in the same copy (after the kernels launched before)."""
         B = self.copies
-        device_sums = None if sums is None else sums.device_values
-        extra = self._per_copy if device_sums is None else device_sums
-        _scalars(a, b, self._partial, self._scalars_out, self._order, self._start, B, extra,
-                 int(device_sums is not None))
+        device_sums = self.launch_scalars(a, b, sums)
         out = self._scalars_host
         if not device_copy.to_host(out, self._scalars_out):
             out = self._scalars_out.to_numpy()
@@ -564,6 +575,22 @@ class CopyVectors:
         if sums is None:
             return dot, big_a, big_b, norm_b
         return dot, big_a, big_b, norm_b, sums.read(None if device_sums is None else values[_SCALARS].copy())
+
+    def launch_scalars(self, a, b, sums: CopySums | None = None):
+        """:meth:`scalars` up to its read: the kernel launched into :attr:`scalars_out` (int64, row ``r`` of copy
+        ``c`` at ``r B + c``: the bits of the dot product, the largest ``|a_k|`` and its NaN flag, ..., and with a
+        device ``sums`` the bits of its device sums in row :data:`SCALARS`). Returns ``sums``' device array, or None
+        (no device sums: row :data:`SCALARS` not written)."""
+        device_sums = None if sums is None else sums.device_values
+        extra = self._per_copy if device_sums is None else device_sums
+        _scalars(a, b, self._partial, self._scalars_out, self._order, self._start, self.copies, extra,
+                 int(device_sums is not None))
+        return device_sums
+
+    @property
+    def scalars_out(self):
+        """The device array :meth:`launch_scalars` writes (int64 ``((SCALARS + 1) B,)``)."""
+        return self._scalars_out
 
     def _extremes(self, a, vertex_norm: bool) -> tuple[np.ndarray, np.ndarray]:
         _extremes(a, self._out, self._order, self._start, self.copies, vertex_norm)

@@ -74,6 +74,31 @@ def test_lockstep_batch_of_three_gives_the_states_of_three_separate_runs(model, 
     assert batch.lockstep.scene.model.bodies["pad#0"].material["youngs_modulus"] == 3e5
 
 
+def test_the_backtrack_decided_on_the_device_takes_the_host_decisions(model, monkeypatch):
+    """The device-vector lockstep's line search with its further trial points' tests and halvings decided on the
+    device against the same decided on the host from one read a trial point: every copy takes the same Newton iterations and backtracks,
+    and the states agree to round-off (the CPU arch's parallel reductions differ run to run by ~1e-17 m)."""
+    from sim_core.batch.line_search import CopyLineSearch
+    from sim_core.ti_kernels.backtrack import DeviceBacktrack
+
+    decided = []
+    decide = DeviceBacktrack.decide
+    monkeypatch.setattr(DeviceBacktrack, "decide", lambda self, *a: decided.append(1) or decide(self, *a))
+    runs = {}
+    for on_device in (True, False):
+        monkeypatch.setattr(CopyLineSearch, "device_backtrack", "always" if on_device else "never")
+        before = len(decided)
+        runs[on_device] = _run(_lockstep_batch(model, LOCKSTEP_CG))
+        assert (len(decided) > before) == on_device  # the trial points' decisions made where asked
+    (device_states, device_results), (host_states, host_results) = runs[True], runs[False]
+    for k in range(STEPS):
+        for i in range(3):
+            assert device_results[k].infos[i].iterations == host_results[k].infos[i].iterations, (k, i)
+            assert device_results[k].infos[i].backtracks == host_results[k].infos[i].backtracks, (k, i)
+            np.testing.assert_allclose(device_states[k][i].x, host_states[k][i].x, rtol=0, atol=1e-15)
+    assert sum(info.backtracks for res in device_results for info in res.infos) > 0  # some copies halved their step
+
+
 @pytest.mark.parametrize("copies", [[2, 0], [0, 1, 2]], ids=["some", "every"])
 def test_copy_states_by_blocks_equal_the_gather_of_the_index(model, copies):
     same = stack_models([copy.deepcopy(model) for _ in range(3)])
