@@ -1,0 +1,119 @@
+"""Saint Venant-Kirchhoff tets (the Green-strain gel element): derivatives vs finite differences, PSD projection,
+the linearisation against the independent P1 assembly (tests/support/linear_fe.py), and the closed-form energy and
+normal stress of a uniformly sheared block, where it parts from Stable Neo-Hookean."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.elastic import ElasticTerms
+from sim_core.energies.green_strain import GreenStrainSolid, linear_lame_parameters
+from sim_core.energies.neohookean.reference import StableNeoHookean
+from sim_core.errors import ConfigError
+from sim_core.mesh.tet import tet_box
+from tests.support.fd import dense_hessian, fd_gradient, fd_hessian, relative_error
+from tests.support.linear_fe import linear_stiffness
+
+E_GEL, NU_GEL = 3e5, 0.45
+
+
+def _block():
+    """3 x 2 x 2 cells of an elongated gel-like box (72 tets, 36 vertices)."""
+    return tet_box((0.0186, 0.0143, 0.004), (4, 3, 3), (0.0, 0.0, 0.0))
+
+
+def _deformed(x: np.ndarray, seed: int, amplitude: float = 1.5e-4) -> np.ndarray:
+    return x + amplitude * np.random.default_rng(seed).standard_normal(x.shape)
+
+
+@pytest.mark.parametrize("nu", [0.2, 0.45, 0.49])
+def test_gradient_and_hessian_match_finite_differences(nu: float) -> None:
+    mesh = _block()
+    pot = GreenStrainSolid(mesh.tets, mesh.x, E_GEL, nu)
+    x = _deformed(mesh.x, 1)
+    assert relative_error(pot.gradient(x), fd_gradient(pot.energy, x, h=1e-8)) < 1e-5
+    H = dense_hessian(pot.hessian(x, "none"), x.shape[0])
+    assert relative_error(H, fd_hessian(pot.gradient, x, h=1e-9)) < 1e-5
+    assert np.allclose(H, H.T, rtol=0, atol=1e-9 * np.abs(H).max())
+
+
+@pytest.mark.parametrize("name", ["youngs_modulus", "poisson_ratio"])
+def test_parameter_gradient_matches_finite_differences(name: str) -> None:
+    mesh = _block()
+    x = _deformed(mesh.x, 2)
+    base = {"youngs_modulus": E_GEL, "poisson_ratio": NU_GEL}
+    step = 1e-6 * base[name]
+
+    def gradient_at(value: float) -> np.ndarray:
+        return GreenStrainSolid(mesh.tets, mesh.x, **{**base, name: value}).gradient(x)
+
+    fd = (gradient_at(base[name] + step) - gradient_at(base[name] - step)) / (2 * step)
+    pot = GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL)
+    assert relative_error(pot.parameter_gradient(x, name), fd) < 1e-6
+    with pytest.raises(KeyError, match="density"):
+        pot.parameter_gradient(x, "density")
+
+
+@pytest.mark.parametrize("projection", ["clamp", "abs"])
+def test_the_projected_hessian_is_psd_where_the_exact_one_is_not(projection: str) -> None:
+    mesh = _block()
+    pot = GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL)
+    x = _deformed(mesh.x, 3, 6e-4)  # strains of order 0.5, compressed tets: StVK's Hessian turns indefinite
+    exact = np.linalg.eigvalsh(dense_hessian(pot.hessian(x, "none"), x.shape[0]))
+    projected = np.linalg.eigvalsh(dense_hessian(pot.hessian(x, projection), x.shape[0]))
+    assert exact.min() < -1e-3 * exact.max()
+    assert projected.min() >= -1e-10 * projected.max()
+    rest_exact = dense_hessian(pot.hessian(mesh.x, "none"), x.shape[0])
+    assert relative_error(dense_hessian(pot.hessian(mesh.x, projection), x.shape[0]), rest_exact) < 1e-12
+
+
+def test_the_small_strain_stiffness_is_linear_elasticity_as_stable_neohookeans() -> None:
+    """At rest both laws are linear elasticity with the same E, nu: the Hessians equal the independent P1 assembly."""
+    mesh = _block()
+    n = mesh.x.shape[0]
+    reference = linear_stiffness(mesh.x, mesh.tets, E_GEL, NU_GEL).toarray()
+    H = dense_hessian(GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL).hessian(mesh.x, "none"), n)
+    assert relative_error(H, reference) < 1e-12
+    H_snh = dense_hessian(StableNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL).hessian(mesh.x, "none"), n)
+    assert relative_error(H_snh, reference) < 1e-12
+
+
+def test_simple_shear_energy_and_the_normal_stress_that_thins_the_layer() -> None:
+    """A block in uniform simple shear ``x = X + gamma Z e_x``: ``E = [[0, 0, g/2], [0, 0, 0], [g/2, 0, g^2/2]]``, so
+    ``psi = mu (g^2/2 + g^4/4) + lam g^4/8`` (closed form) and the second Piola-Kirchhoff stress normal to the
+    layer is ``S_zz = (mu + lam/2) g^2`` > 0: holding the thickness takes a tensile load; at zero normal load the
+    sheared layer thins (what the pressed gel does in a slide). Stable Neo-Hookean's normal stress at the same shear
+    is tensile too but 0.015 of it at nu 0.45 (its bulk term sees no volume change: simple shear keeps ``J = 1``)."""
+    mesh = tet_box((0.01, 0.01, 0.004), (3, 3, 3), (0.0, 0.0, 0.0))
+    pot = GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL)
+    mu, lam = linear_lame_parameters(E_GEL, NU_GEL)
+    volume = 0.01 * 0.01 * 0.004
+    for g in (0.05, 0.15, 0.3):
+        x = mesh.x + np.outer(g * mesh.x[:, 2], [1.0, 0.0, 0.0])
+        psi = mu * (g**2 / 2 + g**4 / 4) + lam * g**4 / 8
+        assert pot.energy(x) == pytest.approx(psi * volume, rel=1e-12)
+        # the top face's normal load at fixed thickness: dE/dz summed over the top vertices = S_zz A (P_zz = S_zz)
+        top = np.isclose(mesh.x[:, 2], 0.004)
+        normal = pot.gradient(x)[top, 2].sum()
+        assert normal == pytest.approx((mu + lam / 2) * g**2 * 0.01 * 0.01, rel=1e-10)
+        snh_normal = StableNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL).gradient(x)[top, 2].sum()
+        assert 0 < snh_normal < 0.03 * normal
+
+
+def test_the_gel_element_is_chosen_by_name() -> None:
+    """``model.meta["solid_element"] = "green_strain"`` gives the solid this law (its energy at a sheared state is
+    Saint Venant-Kirchhoff's, not Stable Neo-Hookean's); an unknown name is an error naming it."""
+    from sim_core.builder import ModelBuilder
+
+    mesh = _block()
+    builder = ModelBuilder()
+    builder.add_solid("gel", mesh, {"youngs_modulus": E_GEL, "poisson_ratio": NU_GEL, "density": 1000.0})
+    model = builder.finalize(meta={"solid_element": "green_strain"})
+    solid = ElasticTerms(model).solids["gel"]
+    x = _deformed(mesh.x, 5)
+    assert isinstance(solid, GreenStrainSolid)
+    assert solid.energy(x) == pytest.approx(GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL).energy(x), rel=1e-12)
+    model.meta["solid_element"] = "green_strian"
+    with pytest.raises(ConfigError, match="green_strian"):
+        ElasticTerms(model)
