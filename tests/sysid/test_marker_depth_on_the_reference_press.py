@@ -46,14 +46,12 @@ def _stiffness(markers: np.ndarray, fz: np.ndarray, window: slice) -> tuple[floa
     return float(-fz[window].mean() / depth.mean()), float(outward.mean() / depth.mean())
 
 
-def _simulated_over_recorded(simulation: dict | None = None) -> tuple[float, float, float, float]:
-    """``(k_recorded, k_simulated, outward_recorded, outward_simulated)`` over the press dwell: stiffness in N/m
-    and the edge markers' outward motion over the depth, the scene's ``simulation`` block overridden by
-    ``simulation``."""
-    evidence = load_evidence(BAG, include_image="auto")
-    window = _press_dwell(evidence)
+def _replayed(evidence, until: slice, simulation: dict | None):
+    """``((recorded markers, recorded F_z), (simulated markers, simulated F_z))`` on the marker samples up to the
+    replay's end: the replay through the fitted drive at the scene's values and :data:`STICK_SPEED`, 0.05 s past
+    ``until``'s end, the scene's ``simulation`` block overridden by ``simulation``."""
     t_markers = evidence.t_ns["markers_xyz"]
-    model = ObservationModel(evidence, dt=0.01, t_max=t_markers[window.stop] / 1e9 + 0.05, arch="cpu",
+    model = ObservationModel(evidence, dt=0.01, t_max=t_markers[until.stop] / 1e9 + 0.05, arch="cpu",
                              simulation=simulation)
     drive = fit_drive(model)
     model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
@@ -61,8 +59,18 @@ def _simulated_over_recorded(simulation: dict | None = None) -> tuple[float, flo
     n = prediction["markers_xyz"].shape[0]
     recorded_fz = resample(evidence.t_ns["wrench"], evidence.wrench, t_markers)[:n, 2]
     simulated_fz = resample(evidence.t_ns["wrench"][:prediction["wrench"].shape[0]], prediction["wrench"], t_markers[:n])[:, 2]
-    k_recorded, out_recorded = _stiffness(evidence.markers_xyz[:n], recorded_fz, window)
-    k_simulated, out_simulated = _stiffness(prediction["markers_xyz"], simulated_fz, window)
+    return (evidence.markers_xyz[:n], recorded_fz), (prediction["markers_xyz"], simulated_fz)
+
+
+def _simulated_over_recorded(simulation: dict | None = None) -> tuple[float, float, float, float]:
+    """``(k_recorded, k_simulated, outward_recorded, outward_simulated)`` over the press dwell: stiffness in N/m
+    and the edge markers' outward motion over the depth, the scene's ``simulation`` block overridden by
+    ``simulation``."""
+    evidence = load_evidence(BAG, include_image="auto")
+    window = _press_dwell(evidence)
+    recorded, simulated = _replayed(evidence, window, simulation)
+    k_recorded, out_recorded = _stiffness(*recorded, window)
+    k_simulated, out_simulated = _stiffness(*simulated, window)
     return k_recorded, k_simulated, out_recorded, out_simulated
 
 
@@ -98,18 +106,7 @@ def _slide_over_press(simulation: dict | None) -> tuple[float, float]:
     press dwell's, the replay through the fitted drive with the scene's ``simulation`` overridden by ``simulation``."""
     evidence = load_evidence(BAG, include_image="auto")
     press, slide = _press_dwell(evidence), _slide(evidence)
-    t_markers = evidence.t_ns["markers_xyz"]
-    model = ObservationModel(evidence, dt=0.01, t_max=t_markers[slide.stop] / 1e9 + 0.05, arch="cpu",
-                             simulation=simulation)
-    drive = fit_drive(model)
-    model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
-    prediction = model.predict_raw(model.simulate({"contact.eps_v": STICK_SPEED}))
-    n = prediction["markers_xyz"].shape[0]
-    recorded_fz = resample(evidence.t_ns["wrench"], evidence.wrench, t_markers)[:n, 2]
-    simulated_fz = resample(evidence.t_ns["wrench"][:prediction["wrench"].shape[0]], prediction["wrench"], t_markers[:n])[:, 2]
-    ratios = []
-    for markers, fz in ((evidence.markers_xyz[:n], recorded_fz), (prediction["markers_xyz"], simulated_fz)):
-        ratios.append(_stiffness(markers, fz, slide)[0] / _stiffness(markers, fz, press)[0])
+    ratios = [_stiffness(*run, slide)[0] / _stiffness(*run, press)[0] for run in _replayed(evidence, slide, simulation)]
     return ratios[0], ratios[1]
 
 

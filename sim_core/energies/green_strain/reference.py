@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_core.energies.base import HessianBlocks, Projection, project_psd
+from sim_core.energies.base import BorrowedWorkspace, HessianBlocks, Projection, project_psd
 from sim_core.energies.neohookean.reference import StableNeoHookean
 
 
@@ -49,7 +49,7 @@ def _linear_lame_derivatives(youngs_modulus: float, poisson_ratio: float, name: 
     return -E / (2.0 * (1.0 + nu) ** 2), E * (1.0 + 2.0 * nu**2) / ((1.0 + nu) * (1.0 - 2.0 * nu)) ** 2
 
 
-class GreenStrainSolid:
+class GreenStrainSolid(BorrowedWorkspace):
     """Saint Venant-Kirchhoff energy of a set of linear tetrahedra (module docstring).
 
     Args:
@@ -63,21 +63,13 @@ class GreenStrainSolid:
     """
 
     parameter_names: tuple[str, ...] = ("youngs_modulus", "poisson_ratio")
+    _host = "per_tet"
 
     def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
         self.per_tet = StableNeoHookean(tets, x_rest, youngs_modulus, poisson_ratio)  # validates E, nu, the mesh
         self.youngs_modulus, self.poisson_ratio = self.per_tet.youngs_modulus, self.per_tet.poisson_ratio
         self.mu, self.lam = linear_lame_parameters(self.youngs_modulus, self.poisson_ratio)
         self.tets, self.tet_rest_volume = self.per_tet.tets, self.per_tet.tet_rest_volume
-
-    @property
-    def workspace(self):
-        """The workspace of :attr:`per_tet` (:mod:`sim_core.workspace`), or None before one is given."""
-        return self.per_tet.__dict__.get("workspace")
-
-    @workspace.setter
-    def workspace(self, value) -> None:
-        self.per_tet.workspace = value
 
     def _strain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(F, E, tr E)`` per tet at ``x`` ``(n, 3)``: shapes ``(k, 3, 3)``, ``(k, 3, 3)``, ``(k,)``."""

@@ -12,54 +12,31 @@ from sim_core.energies.green_strain import GreenStrainSolid, linear_lame_paramet
 from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.errors import ConfigError
 from sim_core.mesh.tet import tet_box
-from tests.support.fd import dense_hessian, fd_gradient, fd_hessian, relative_error
+from tests.sim_core.energies.solid_cases import (E_GEL, NU_GEL, deformed, derivative_errors, gel_block,
+                                                 parameter_gradient_error)
+from tests.support.fd import dense_hessian, relative_error
 from tests.support.linear_fe import linear_stiffness
-
-E_GEL, NU_GEL = 3e5, 0.45
-
-
-def _block():
-    """3 x 2 x 2 cells of an elongated gel-like box (72 tets, 36 vertices)."""
-    return tet_box((0.0186, 0.0143, 0.004), (4, 3, 3), (0.0, 0.0, 0.0))
-
-
-def _deformed(x: np.ndarray, seed: int, amplitude: float = 1.5e-4) -> np.ndarray:
-    return x + amplitude * np.random.default_rng(seed).standard_normal(x.shape)
 
 
 @pytest.mark.parametrize("nu", [0.2, 0.45, 0.49])
 def test_gradient_and_hessian_match_finite_differences(nu: float) -> None:
-    mesh = _block()
-    pot = GreenStrainSolid(mesh.tets, mesh.x, E_GEL, nu)
-    x = _deformed(mesh.x, 1)
-    assert relative_error(pot.gradient(x), fd_gradient(pot.energy, x, h=1e-8)) < 1e-5
-    H = dense_hessian(pot.hessian(x, "none"), x.shape[0])
-    assert relative_error(H, fd_hessian(pot.gradient, x, h=1e-9)) < 1e-5
-    assert np.allclose(H, H.T, rtol=0, atol=1e-9 * np.abs(H).max())
+    gradient, hessian, asymmetry = derivative_errors(GreenStrainSolid, nu)
+    assert gradient < 1e-5 and hessian < 1e-5 and asymmetry < 1e-9
 
 
 @pytest.mark.parametrize("name", ["youngs_modulus", "poisson_ratio"])
 def test_parameter_gradient_matches_finite_differences(name: str) -> None:
-    mesh = _block()
-    x = _deformed(mesh.x, 2)
-    base = {"youngs_modulus": E_GEL, "poisson_ratio": NU_GEL}
-    step = 1e-6 * base[name]
-
-    def gradient_at(value: float) -> np.ndarray:
-        return GreenStrainSolid(mesh.tets, mesh.x, **{**base, name: value}).gradient(x)
-
-    fd = (gradient_at(base[name] + step) - gradient_at(base[name] - step)) / (2 * step)
-    pot = GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL)
-    assert relative_error(pot.parameter_gradient(x, name), fd) < 1e-6
+    error, pot, x = parameter_gradient_error(GreenStrainSolid, name)
+    assert error < 1e-6
     with pytest.raises(KeyError, match="density"):
         pot.parameter_gradient(x, "density")
 
 
 @pytest.mark.parametrize("projection", ["clamp", "abs"])
 def test_the_projected_hessian_is_psd_where_the_exact_one_is_not(projection: str) -> None:
-    mesh = _block()
+    mesh = gel_block()
     pot = GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL)
-    x = _deformed(mesh.x, 3, 6e-4)  # strains of order 0.5, compressed tets: StVK's Hessian turns indefinite
+    x = deformed(mesh.x, 3, 6e-4)  # strains of order 0.5, compressed tets: StVK's Hessian turns indefinite
     exact = np.linalg.eigvalsh(dense_hessian(pot.hessian(x, "none"), x.shape[0]))
     projected = np.linalg.eigvalsh(dense_hessian(pot.hessian(x, projection), x.shape[0]))
     assert exact.min() < -1e-3 * exact.max()
@@ -70,7 +47,7 @@ def test_the_projected_hessian_is_psd_where_the_exact_one_is_not(projection: str
 
 def test_the_small_strain_stiffness_is_linear_elasticity_as_stable_neohookeans() -> None:
     """At rest both laws are linear elasticity with the same E, nu: the Hessians equal the independent P1 assembly."""
-    mesh = _block()
+    mesh = gel_block()
     n = mesh.x.shape[0]
     reference = linear_stiffness(mesh.x, mesh.tets, E_GEL, NU_GEL).toarray()
     H = dense_hessian(GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL).hessian(mesh.x, "none"), n)
@@ -106,12 +83,12 @@ def test_the_gel_element_is_chosen_by_name() -> None:
     Saint Venant-Kirchhoff's, not Stable Neo-Hookean's); an unknown name is an error naming it."""
     from sim_core.builder import ModelBuilder
 
-    mesh = _block()
+    mesh = gel_block()
     builder = ModelBuilder()
     builder.add_solid("gel", mesh, {"youngs_modulus": E_GEL, "poisson_ratio": NU_GEL, "density": 1000.0})
     model = builder.finalize(meta={"solid_element": "green_strain"})
     solid = ElasticTerms(model).solids["gel"]
-    x = _deformed(mesh.x, 5)
+    x = deformed(mesh.x, 5)
     assert isinstance(solid, GreenStrainSolid)
     assert solid.energy(x) == pytest.approx(GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL).energy(x), rel=1e-12)
     model.meta["solid_element"] = "green_strian"
