@@ -94,6 +94,10 @@ class GreenStrainSolid(BorrowedWorkspace):
         A += self.lam * np.einsum("kij,kab->kijab", F, F)
         return A.reshape(k, 9, 9)
 
+    def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``F`` per tet at ``x`` ``(n, 3)``, shape ``(k, 3, 3)`` (the gel candidates' relaxed states read it)."""
+        return self.per_tet.deformation_gradient(x)
+
     # ------------------------------------------------------------------ Potential contract
     def energy(self, x: np.ndarray) -> float:
         """``sum_t V_t (mu tr(E_t^2) + lam / 2 tr(E_t)^2)`` in J at ``x`` ``(n, 3)`` (0 at rest)."""

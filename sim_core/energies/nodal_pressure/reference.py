@@ -253,6 +253,10 @@ class NodalPressureNeoHookean(BorrowedWorkspace):
         """``J_a`` of every node, ``(nodes,)`` (order of ``volume.nodes``)."""
         return 1.0 + self.volume.kinematics(x)[2]
 
+    def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``F`` per tet at ``x`` ``(n, 3)``, shape ``(k, 3, 3)`` (the gel candidates' relaxed states read it)."""
+        return self.per_tet.deformation_gradient(x)
+
     # ------------------------------------------------------------------ Potential contract
     def energy(self, x: np.ndarray) -> float:
         """``sum_t V_t psi_s(F_t) + sum_a V_a kappa / 2 (J_a - 1)^2`` in J at ``x`` ``(n, 3)`` (0 at rest)."""

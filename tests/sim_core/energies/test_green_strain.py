@@ -94,3 +94,20 @@ def test_the_gel_element_is_chosen_by_name() -> None:
     model.meta["solid_element"] = "green_strian"
     with pytest.raises(ConfigError, match="green_strian"):
         ElasticTerms(model)
+
+
+def test_the_gel_candidates_take_the_green_strain_gels_per_tet_branch() -> None:
+    """The Maxwell branch (gel viscoelasticity) and the Kelvin-Voigt dashpot (gel damping) of a Green-strain gel are
+    those of its per-tet Stable Neo-Hookean of the same E, nu, as for the nodal-pressure gel."""
+    from sim_core.candidates.gel_damping import kelvin_voigt_branch
+    from sim_core.candidates.gel_viscoelasticity import MaxwellBranch
+
+    mesh = gel_block()
+    green = GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL)
+    x, x_prev = deformed(mesh.x, 6), deformed(mesh.x, 7)
+    relaxed = green.deformation_gradient(x_prev)
+    assert relative_error(relaxed, green.per_tet.deformation_gradient(x_prev)) == 0.0
+    assert MaxwellBranch(green, relaxed, 0.4).energy(x) == pytest.approx(
+        MaxwellBranch(green.per_tet, relaxed, 0.4).energy(x), rel=1e-12)
+    assert kelvin_voigt_branch(green, x_prev, 0.02, 0.01).energy(x) == pytest.approx(
+        kelvin_voigt_branch(green.per_tet, x_prev, 0.02, 0.01).energy(x), rel=1e-12)
