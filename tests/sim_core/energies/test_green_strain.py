@@ -1,6 +1,7 @@
-"""Saint Venant-Kirchhoff tets (the Green-strain gel element): derivatives vs finite differences, PSD projection,
-the linearisation against the independent P1 assembly (tests/support/linear_fe.py), and the closed-form energy and
-normal stress of a uniformly sheared block, where it parts from Stable Neo-Hookean."""
+"""Saint Venant-Kirchhoff tets (the Green-strain gel element): the linearisation against the independent P1 assembly
+(tests/support/linear_fe.py), the closed-form energy and normal stress of a uniformly sheared block, where it parts
+from Stable Neo-Hookean, the element chosen by name, and the gel candidates on it. Its derivatives against finite
+differences and its PSD projection: test_solid_element_derivatives.py."""
 
 from __future__ import annotations
 
@@ -12,37 +13,9 @@ from sim_core.energies.green_strain import GreenStrainSolid, linear_lame_paramet
 from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.errors import ConfigError
 from sim_core.mesh.tet import tet_box
-from tests.sim_core.energies.solid_cases import (E_GEL, NU_GEL, deformed, derivative_errors, gel_block,
-                                                 parameter_gradient_error)
+from tests.sim_core.energies.solid_cases import E_GEL, NU_GEL, deformed, gel_block
 from tests.support.fd import dense_hessian, relative_error
 from tests.support.linear_fe import linear_stiffness
-
-
-@pytest.mark.parametrize("nu", [0.2, 0.45, 0.49])
-def test_gradient_and_hessian_match_finite_differences(nu: float) -> None:
-    gradient, hessian, asymmetry = derivative_errors(GreenStrainSolid, nu)
-    assert gradient < 1e-5 and hessian < 1e-5 and asymmetry < 1e-9
-
-
-@pytest.mark.parametrize("name", ["youngs_modulus", "poisson_ratio"])
-def test_parameter_gradient_matches_finite_differences(name: str) -> None:
-    error, pot, x = parameter_gradient_error(GreenStrainSolid, name)
-    assert error < 1e-6
-    with pytest.raises(KeyError, match="density"):
-        pot.parameter_gradient(x, "density")
-
-
-@pytest.mark.parametrize("projection", ["clamp", "abs"])
-def test_the_projected_hessian_is_psd_where_the_exact_one_is_not(projection: str) -> None:
-    mesh = gel_block()
-    pot = GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL)
-    x = deformed(mesh.x, 3, 6e-4)  # strains of order 0.5, compressed tets: StVK's Hessian turns indefinite
-    exact = np.linalg.eigvalsh(dense_hessian(pot.hessian(x, "none"), x.shape[0]))
-    projected = np.linalg.eigvalsh(dense_hessian(pot.hessian(x, projection), x.shape[0]))
-    assert exact.min() < -1e-3 * exact.max()
-    assert projected.min() >= -1e-10 * projected.max()
-    rest_exact = dense_hessian(pot.hessian(mesh.x, "none"), x.shape[0])
-    assert relative_error(dense_hessian(pot.hessian(mesh.x, projection), x.shape[0]), rest_exact) < 1e-12
 
 
 def test_the_small_strain_stiffness_is_linear_elasticity_as_stable_neohookeans() -> None:

@@ -1,5 +1,5 @@
-"""Average-nodal-pressure Stable Neo-Hookean tets: derivatives vs finite differences, PSD projection, the patch
-test (a uniform deformation gives Stable Neo-Hookean's energy and forces), the linearisation against an
+"""Average-nodal-pressure Stable Neo-Hookean tets (derivatives vs finite differences and the PSD projection:
+test_solid_element_derivatives.py): the patch test (a uniform deformation gives Stable Neo-Hookean's energy and forces), the linearisation against an
 independent small-strain assembly (tests/support/linear_fe.py), and the widened Hessian pattern through the
 solver's assembler."""
 
@@ -13,38 +13,9 @@ from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.energies.nodal_pressure.reference import NodalPressureNeoHookean
 from sim_core.errors import ConfigError
 from sim_core.mesh.tet import tet_box
-from tests.sim_core.energies.solid_cases import (E_GEL, NU_GEL, deformed, derivative_errors, gel_block,
-                                                 parameter_gradient_error)
+from tests.sim_core.energies.solid_cases import E_GEL, NU_GEL, deformed, gel_block
 from tests.support.fd import dense_hessian, fd_hessian, relative_error
 from tests.support.linear_fe import linear_stiffness, nodal_pressure_stiffness
-
-
-@pytest.mark.parametrize("nu", [0.2, 0.45, 0.49])
-def test_gradient_and_hessian_match_finite_differences(nu: float) -> None:
-    gradient, hessian, asymmetry = derivative_errors(NodalPressureNeoHookean, nu)
-    assert gradient < 1e-5 and hessian < 1e-5 and asymmetry < 1e-9
-
-
-@pytest.mark.parametrize("name", ["youngs_modulus", "poisson_ratio"])
-def test_parameter_gradient_matches_finite_differences(name: str) -> None:
-    error, pot, x = parameter_gradient_error(NodalPressureNeoHookean, name)
-    assert error < 1e-6
-    with pytest.raises(KeyError, match="density"):
-        pot.parameter_gradient(x, "density")
-
-
-@pytest.mark.parametrize("projection", ["clamp", "abs"])
-def test_the_projected_hessian_is_psd_where_the_exact_one_is_not(projection: str) -> None:
-    mesh = gel_block()
-    pot = NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL)
-    x = deformed(mesh.x, 3, 6e-4)  # strains of order 0.5: pressures that make p d2J indefinite
-    exact = np.linalg.eigvalsh(dense_hessian(pot.hessian(x, "none"), x.shape[0]))
-    projected = np.linalg.eigvalsh(dense_hessian(pot.hessian(x, projection), x.shape[0]))
-    assert exact.min() < -1e-3 * exact.max()
-    assert projected.min() >= -1e-10 * projected.max()
-    # at rest the pressures vanish and the projection changes nothing (the small-strain response is exact)
-    rest_exact = dense_hessian(pot.hessian(mesh.x, "none"), x.shape[0])
-    assert relative_error(dense_hessian(pot.hessian(mesh.x, projection), x.shape[0]), rest_exact) < 1e-12
 
 
 def test_a_uniform_deformation_is_stable_neohookeans_at_large_strain() -> None:
