@@ -1,7 +1,7 @@
 """Average-nodal-pressure Stable Neo-Hookean tets (derivatives vs finite differences and the PSD projection:
-test_solid_element_derivatives.py): the patch test (a uniform deformation gives Stable Neo-Hookean's energy and forces), the linearisation against an
-independent small-strain assembly (tests/support/linear_fe.py), and the widened Hessian pattern through the
-solver's assembler."""
+test_solid_element_derivatives.py): the patch test (a uniform deformation gives Stable Neo-Hookean's energy and
+forces), the linearisation against an independent small-strain assembly (tests/support/linear_fe.py), and the
+widened Hessian pattern through the solver's assembler."""
 
 from __future__ import annotations
 
