@@ -58,7 +58,7 @@ class GelLawChoice:
 
 def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01, t_max: float | None = None,
                    values: Mapping[str, float] | None = None, channels: Sequence[str] = TACTILE,
-                   arch: str = "cpu") -> GelLawChoice:
+                   arch: str = "cpu", simulation: Mapping[str, Any] | None = None) -> GelLawChoice:
     """Replay ``evidence`` once per gel law and choose the law by the whitened sum of squares (module docstring).
 
     Args:
@@ -67,6 +67,7 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
         dt, t_max, arch: the replays' step (s), end (s; None: the recording's) and elastic backend.
         values: parameter values of every replay (None: the scene's).
         channels: the compared channels; those the recording lacks are skipped.
+        simulation: other overrides of the scene's ``simulation:`` block for every replay (e.g. ``gel_resolution``).
 
     Returns:
         :class:`GelLawChoice`.
@@ -80,7 +81,8 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
     cost: dict[str, float] = {}
     rms: dict[str, dict[str, float]] = {}
     for law in laws:
-        model = ObservationModel(evidence, dt=dt, t_max=t_max, arch=arch, simulation={"gel_element": law})
+        model = ObservationModel(evidence, dt=dt, t_max=t_max, arch=arch,
+                                 simulation={**dict(simulation or {}), "gel_element": law})
         drive = fit_drive(model)
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
         prediction = model.predict(model.simulate(dict(values or {})))

@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     from sysid.calibration_secant import SECANT_REPLAYS
     from sim_core.batch.sizing import batch_size_arg
     from sim_core.elastic import SOLID_ELEMENTS
+    from sysid.diagnose.pipeline import AUTO_LAW
 
     p = argparse.ArgumentParser(
         prog="thinshell diagnose",
@@ -107,10 +108,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--candidates", nargs="*", help="score stage: restrict the candidate library to these effects (default: the whole library)")
     p.add_argument("--gel-resolution", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
                    help="gel mesh resolution of the replays (coarser = faster; default: the scene's)")
-    p.add_argument("--gel-element", choices=SOLID_ELEMENTS,
+    p.add_argument("--gel-element", choices=(*SOLID_ELEMENTS, AUTO_LAW),
                    help="the gel's element and law in the replays (default: the scene's, else stable_neohookean; "
                         "green_strain: Saint Venant-Kirchhoff, the Green-strain law whose pressed gel softens while it "
-                        "is sheared, docs/known_answers.md)")
+                        "is sheared, docs/known_answers.md; auto: each recording's choice between the two laws by "
+                        "delta-BIC of one replay each, reported in extra.pipeline.gel_law)")
     p.add_argument("--fit-max-nfev", type=int, default=8, help="function evaluations of the calibration's fit")
     p.add_argument("--arch", choices=("numpy", "cpu", "cuda"), default="cpu",
                    help="elastic terms of the replays: fused Taichi kernels on cpu/cuda (default: %(default)s; same "

@@ -53,6 +53,23 @@ def test_the_data_choose_the_law_that_made_the_recording(concealed):
     assert choice.margin > 1000.0, choice.summary()
 
 
+def test_diagnose_with_gel_element_auto_replays_the_law_the_recording_chooses(concealed):
+    """``thinshell diagnose --gel-element auto``: before either stage the pipeline puts the chosen law in both stages'
+    replays (with the other ``simulation`` overrides kept) and reports the choice."""
+    from sysid.diagnose.cli import build_parser, options_from_args
+    from sysid.diagnose.pipeline import with_gel_law
+
+    law, bag = concealed
+    options = options_from_args(build_parser().parse_args([str(bag), "--gel-element", "auto",
+                                                           "--gel-resolution", "5", "4", "2"]))  # the scene's own
+    chosen, choice = with_gel_law(bag, options)
+    expected = {"gel_resolution": [5, 4, 2], "gel_element": law}
+    assert chosen.signatures.simulation == chosen.score.simulation == expected
+    assert choice.summary()["chosen"] == law
+    plain = options_from_args(build_parser().parse_args([str(bag)]))
+    assert with_gel_law(bag, plain) == (plain, None)
+
+
 def test_the_reference_engines_recording_chooses_the_green_strain_law():
     choice = choose_gel_law(load_evidence(REFERENCE, include_image="auto"))
     assert choice.chosen == "green_strain", choice.summary()
