@@ -30,7 +30,7 @@ from sim_core.model import Model
 from sim_core.workspace import Workspace
 
 
-SOLID_ELEMENTS: tuple[str, ...] = ("stable_neohookean", "nodal_pressure_neohookean")
+SOLID_ELEMENTS: tuple[str, ...] = ("stable_neohookean", "nodal_pressure_neohookean", "green_strain")
 """Elastic kinds (:data:`sim_core.energies.registry.ELASTIC_KINDS`) a solid body may take."""
 
 

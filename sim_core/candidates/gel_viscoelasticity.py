@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from sim_core.energies.base import HessianBlocks, Projection
+from sim_core.energies.green_strain.reference import GreenStrainSolid
 from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.energies.nodal_pressure.reference import NodalPressureNeoHookean
 from sim_core.errors import ConfigError
@@ -37,7 +38,8 @@ class MaxwellBranch:
 
     Args:
         solid: the gel's equilibrium :class:`StableNeoHookean` (tets, rest shape, E, nu); a
-            :class:`NodalPressureNeoHookean` gel gets the branch of its per-tet Stable Neo-Hookean.
+            :class:`NodalPressureNeoHookean` or :class:`~sim_core.energies.green_strain.GreenStrainSolid` gel gets the
+            branch of its per-tet Stable Neo-Hookean (``per_tet``).
         tet_relaxed_F: relaxed rest states ``F_r`` per tet, shape ``(k, 3, 3)`` (identity = the
             undeformed gel); must be invertible.
         beta: branch-to-equilibrium stiffness ratio (>= 0; 0 = off).
@@ -49,7 +51,8 @@ class MaxwellBranch:
 
     parameter_names: tuple[str, ...] = ("beta",)
 
-    def __init__(self, solid: StableNeoHookean | NodalPressureNeoHookean, tet_relaxed_F: np.ndarray, beta: float) -> None:
+    def __init__(self, solid: StableNeoHookean | NodalPressureNeoHookean | GreenStrainSolid, tet_relaxed_F: np.ndarray,
+                 beta: float) -> None:
         beta = float(beta)
         if not (np.isfinite(beta) and beta >= 0):
             raise ConfigError(f"MaxwellBranch: stiffness ratio beta must be finite and >= 0, got {beta}")
@@ -63,9 +66,8 @@ class MaxwellBranch:
             raise ConfigError(f"MaxwellBranch: relaxed state of tet {int(bad[0])} is singular or inverted "
                               f"(det F_r = {det[bad[0]]:.3g})")
         self.beta = beta
-        if isinstance(solid, NodalPressureNeoHookean):
-            # the branch of a nodal-pressure gel is the per-tet Stable Neo-Hookean of its E, nu (beta of it)
-            solid = solid.per_tet
+        # the branch of a nodal-pressure or Green-strain gel is the per-tet Stable Neo-Hookean of its E, nu (beta of it)
+        solid = getattr(solid, "per_tet", solid)
         self.tets = solid.tets
         self.vertices = solid.tets
         branch = object.__new__(StableNeoHookean)

@@ -283,6 +283,22 @@ def sum_by_copy(copy_of_vertex: np.ndarray, vertices: np.ndarray, values: np.nda
     return np.bincount(np.take(copy_of_vertex, vertices), weights=values, minlength=copy_count)
 
 
+class BorrowedWorkspace:
+    """Mixin of a potential built on a Stable Neo-Hookean whose ``dF/dx`` and deformation memo it reads (the attribute
+    named by ``_host``): its ``workspace`` (:mod:`sim_core.workspace`) is the host's, so both share one memo."""
+
+    _host = "shear"
+
+    @property
+    def workspace(self):
+        """The host's workspace, or None before one is given."""
+        return getattr(self, self._host).__dict__.get("workspace")
+
+    @workspace.setter
+    def workspace(self, value) -> None:
+        getattr(self, self._host).workspace = value
+
+
 def project_psd(blocks: np.ndarray, projection: Projection = "clamp") -> np.ndarray:
     """Project symmetric element Hessians onto the positive semi-definite cone.
 

@@ -35,6 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     from sysid.calibration import CALIBRATION_REPLAYS
     from sysid.calibration_secant import SECANT_REPLAYS
     from sim_core.batch.sizing import batch_size_arg
+    from sim_core.elastic import SOLID_ELEMENTS
+    from sysid.diagnose.pipeline import AUTO_LAW
 
     p = argparse.ArgumentParser(
         prog="thinshell diagnose",
@@ -106,6 +108,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--candidates", nargs="*", help="score stage: restrict the candidate library to these effects (default: the whole library)")
     p.add_argument("--gel-resolution", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
                    help="gel mesh resolution of the replays (coarser = faster; default: the scene's)")
+    p.add_argument("--gel-element", choices=(*SOLID_ELEMENTS, AUTO_LAW),
+                   help="the gel's element and law in the replays (default: the scene's, else stable_neohookean; "
+                        "green_strain: Saint Venant-Kirchhoff, the Green-strain law whose pressed gel softens while it "
+                        "is sheared, docs/known_answers.md; auto: each recording's choice between the two laws by "
+                        "delta-BIC of one replay each, reported in extra.pipeline.gel_law)")
     p.add_argument("--fit-max-nfev", type=int, default=8, help="function evaluations of the calibration's fit")
     p.add_argument("--arch", choices=("numpy", "cpu", "cuda"), default="cpu",
                    help="elastic terms of the replays: fused Taichi kernels on cpu/cuda (default: %(default)s; same "
@@ -181,7 +188,18 @@ def signature_settings(args: argparse.Namespace) -> SignatureSettings:
         calibration_max_replays=args.calibration_replays, calibration_secant_replays=args.calibration_secant_replays,
         calibration_drive=args.drive, workers=max(1, args.workers), probe_worker=not args.one_process,
         batched=args.batched, batch_size=args.batch_size,
-        simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
+        simulation=simulation_overrides(args))
+
+
+def simulation_overrides(args: argparse.Namespace) -> dict[str, Any] | None:
+    """The replays' overrides of the scene's ``simulation:`` block from ``--gel-resolution`` and ``--gel-element``
+    (None: neither given)."""
+    out: dict[str, Any] = {}
+    if args.gel_resolution is not None:
+        out["gel_resolution"] = list(args.gel_resolution)
+    if args.gel_element is not None:
+        out["gel_element"] = args.gel_element
+    return out or None
 
 
 def score_settings(args: argparse.Namespace) -> Settings:
@@ -193,7 +211,7 @@ def score_settings(args: argparse.Namespace) -> Settings:
                     batched=args.batched, batch_size=args.batch_size, fit_max_nfev=args.fit_max_nfev, arch=args.arch,
                     calibrate=not args.no_calibrate, calibration_max_time=args.calibration_time,
                     calibration_max_replays=args.calibration_replays, warm_start=args.warm_start,
-                    simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
+                    simulation=simulation_overrides(args))
 
 
 def options_from_args(args: argparse.Namespace) -> PipelineOptions:

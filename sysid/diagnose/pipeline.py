@@ -30,13 +30,17 @@ Every recording's report has one schema (:mod:`sysid.diagnose.schema`, :data:`SC
 contract, ``schema_version``, and ``extra.pipeline`` with the stage that named (``"score"`` or
 ``"signatures"``), the premise (the drive's decision, delta-BIC and reason) and the options that did not
 apply to that stage.
+
+``--gel-element auto`` chooses the gel's law per recording before either stage (:func:`with_gel_law`,
+:func:`sysid.gel_law.choose_gel_law`: one replay per law at the scene's values, the smaller whitened sum of squares,
+two replays); the choice is in ``extra.pipeline.gel_law``, and both stages replay that law.
 """
 
 from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -126,6 +130,35 @@ def premise(bag: str | Path, settings: SignatureSettings) -> Premise:
                    "the missing effect")
 
 
+AUTO_LAW = "auto"
+"""``simulation.gel_element`` (``--gel-element``) that asks :func:`with_gel_law` to choose the law per recording."""
+
+
+def with_gel_law(bag: str | Path, options: PipelineOptions) -> tuple[PipelineOptions, Any]:
+    """``(options, choice)``: where ``options`` ask for the gel law :data:`AUTO_LAW`, the options with the law the
+    recording chooses (:func:`sysid.gel_law.choose_gel_law`, read as the signature stage's settings say) in both
+    stages' ``simulation`` and the :class:`sysid.gel_law.GelLawChoice`; else ``options`` unchanged and None.
+
+    Raises:
+        BagReadError: unreadable recording.
+        ConfigError: invalid scene.
+    """
+    from sysid.evidence import load_evidence
+    from sysid.gel_law import choose_gel_law
+
+    s = options.signatures
+    simulation = dict(s.simulation or {})
+    if simulation.get("gel_element") != AUTO_LAW:
+        return options, None
+    del simulation["gel_element"]
+    evidence = load_evidence(bag, include_image="auto", recording_map=s.recording_map, t_start=s.t_start,
+                             t_end=s.t_end)
+    choice = choose_gel_law(evidence, dt=s.dt, t_max=s.t_max, arch=s.arch, simulation=simulation)
+    chosen = {**simulation, "gel_element": choice.chosen}
+    return replace(options, signatures=replace(s, simulation=chosen),
+                   score=replace(options.score, simulation=chosen)), choice
+
+
 def _stamp(doc: dict[str, Any], prem: Premise, options: PipelineOptions, wall_s: float) -> dict[str, Any]:
     """``doc`` with the pipeline's keys of the schema (module docstring)."""
     other = SIGNATURES if prem.stage == SCORE else SCORE
@@ -162,22 +195,25 @@ def diagnose_recordings(bags: Sequence[str | Path], options: PipelineOptions) ->
     from sysid.diagnose.schema import validate_report
     from sysid.diagnose.signature_engine import diagnose_one
 
-    premises = [premise(b, options.signatures) for b in bags]
+    laws = [with_gel_law(b, options) for b in bags]
+    premises = [premise(b, law_options.signatures) for b, (law_options, _) in zip(bags, laws)]
     docs: list[dict[str, Any]] = []
     runs: list[Any] = []
     baselines = None
-    for bag, prem in zip(bags, premises):
+    for bag, prem, (opts, choice) in zip(bags, premises, laws):
         t0 = time.monotonic()
         if prem.stage == SCORE:
-            doc, (run,) = run_diagnosis([bag], options.heldout, options.params, options.score, options.project,
-                                        options.candidates)
+            doc, (run,) = run_diagnosis([bag], opts.heldout, opts.params, opts.score, opts.project,
+                                        opts.candidates)
         else:
             first = None
             if baselines is None:
-                first, baselines = prepare_with_baselines(bag, options.baseline, options.signatures,
-                                                          options.signatures.workers, options.ray_address)
-            doc, run = diagnose_one(bag, settings=options.signatures, baseline_prepared=baselines, prepared=first)
-        doc = _stamp(doc, prem, options, time.monotonic() - t0)
+                first, baselines = prepare_with_baselines(bag, opts.baseline, opts.signatures,
+                                                          opts.signatures.workers, opts.ray_address)
+            doc, run = diagnose_one(bag, settings=opts.signatures, baseline_prepared=baselines, prepared=first)
+        doc = _stamp(doc, prem, opts, time.monotonic() - t0)
+        if choice is not None:
+            doc["extra"]["pipeline"]["gel_law"] = choice.summary()
         validate_report(doc)
         docs.append(doc)
         runs.append(run)

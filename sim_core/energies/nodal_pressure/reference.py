@@ -66,7 +66,7 @@ import copy
 
 import numpy as np
 
-from sim_core.energies.base import HessianBlocks, Projection
+from sim_core.energies.base import BorrowedWorkspace, HessianBlocks, Projection
 from sim_core.energies.neohookean.reference import StableNeoHookean, _snh_lame_derivatives
 
 
@@ -76,23 +76,7 @@ def nodal_pressure_moduli(mu: float, lam: float) -> tuple[float, float]:
     return mu / 8.0, lam - mu / 8.0
 
 
-class _ShearWorkspace:
-    """The ``workspace`` of a potential built on a shear part (``self.shear``): the shear part's, whose memo of the
-    deformation gradients both read (:mod:`sim_core.workspace`; the solver's, set by the terms that built it)."""
-
-    shear: StableNeoHookean
-
-    @property
-    def workspace(self):
-        """The shear part's workspace, or None before one is given."""
-        return self.shear.__dict__.get("workspace")
-
-    @workspace.setter
-    def workspace(self, value) -> None:
-        self.shear.workspace = value
-
-
-class NodalVolume(_ShearWorkspace):
+class NodalVolume(BorrowedWorkspace):
     """The nodal volumetric term ``sum_a V_a kappa / 2 (J_a - 1)^2`` of :class:`NodalPressureNeoHookean` as a
     potential of its own (module docstring): value, gradient, Hessian blocks over the vertex rings.
 
@@ -233,7 +217,7 @@ def _mapped(snh: StableNeoHookean, A: np.ndarray) -> np.ndarray:
     return np.matmul(np.swapaxes(M, 1, 2), np.matmul(A, M)) * snh.tet_rest_volume[:, None, None]
 
 
-class NodalPressureNeoHookean(_ShearWorkspace):
+class NodalPressureNeoHookean(BorrowedWorkspace):
     """Stable Neo-Hookean tets with an average nodal pressure (module docstring): the same ``E``, ``nu``
     and constructor as :class:`~sim_core.energies.neohookean.reference.StableNeoHookean`.
 
@@ -268,6 +252,10 @@ class NodalPressureNeoHookean(_ShearWorkspace):
     def nodal_jacobian(self, x: np.ndarray) -> np.ndarray:
         """``J_a`` of every node, ``(nodes,)`` (order of ``volume.nodes``)."""
         return 1.0 + self.volume.kinematics(x)[2]
+
+    def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``F`` per tet at ``x`` ``(n, 3)``, shape ``(k, 3, 3)`` (the gel candidates' relaxed states read it)."""
+        return self.per_tet.deformation_gradient(x)
 
     # ------------------------------------------------------------------ Potential contract
     def energy(self, x: np.ndarray) -> float:

@@ -19,11 +19,11 @@ from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, CopyE
                                     PenaltyContact, Potential, SparseGradient, SplitPotential, SubsetHessian)
 
 NOT_POTENTIALS = {
-    "sim_core.energies.base": {"HessianBlocks", "Potential", "FrozenPositionsKey"} | {c.__name__ for c in CAPABILITIES},
+    "sim_core.energies.base": ({"HessianBlocks", "Potential", "FrozenPositionsKey", "BorrowedWorkspace"}
+                               | {c.__name__ for c in CAPABILITIES}),
     "sim_core.energies.contact.reference": {"ContactFrames", "PairEvaluation"},
     "sim_core.energies.contact.pair_lists": {"CandidateVertices", "BatchLayout"},
     "sim_core.candidates.hook": {"CandidateHook", "StepHook", "GelContactFace"},
-    "sim_core.energies.nodal_pressure.reference": {"_ShearWorkspace"},
 }
 """Public classes of the scanned packages that are not potentials (records, protocols, the hook, a mixin)."""
 

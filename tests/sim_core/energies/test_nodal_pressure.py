@@ -1,7 +1,7 @@
-"""Average-nodal-pressure Stable Neo-Hookean tets: derivatives vs finite differences, PSD projection, the patch
-test (a uniform deformation gives Stable Neo-Hookean's energy and forces), the linearisation against an
-independent small-strain assembly (tests/support/linear_fe.py), and the widened Hessian pattern through the
-solver's assembler."""
+"""Average-nodal-pressure Stable Neo-Hookean tets (derivatives vs finite differences and the PSD projection:
+test_solid_element_derivatives.py): the patch test (a uniform deformation gives Stable Neo-Hookean's energy and
+forces), the linearisation against an independent small-strain assembly (tests/support/linear_fe.py), and the
+widened Hessian pattern through the solver's assembler."""
 
 from __future__ import annotations
 
@@ -13,61 +13,9 @@ from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.energies.nodal_pressure.reference import NodalPressureNeoHookean
 from sim_core.errors import ConfigError
 from sim_core.mesh.tet import tet_box
-from tests.support.fd import dense_hessian, fd_gradient, fd_hessian, relative_error
+from tests.sim_core.energies.solid_cases import E_GEL, NU_GEL, deformed, gel_block
+from tests.support.fd import dense_hessian, fd_hessian, relative_error
 from tests.support.linear_fe import linear_stiffness, nodal_pressure_stiffness
-
-E_GEL, NU_GEL = 3e5, 0.45
-
-
-def _block():
-    """3 x 2 x 2 cells of an elongated gel-like box (72 tets, 36 vertices)."""
-    return tet_box((0.0186, 0.0143, 0.004), (4, 3, 3), (0.0, 0.0, 0.0))
-
-
-def _deformed(x: np.ndarray, seed: int, amplitude: float = 1.5e-4) -> np.ndarray:
-    return x + amplitude * np.random.default_rng(seed).standard_normal(x.shape)
-
-
-@pytest.mark.parametrize("nu", [0.2, 0.45, 0.49])
-def test_gradient_and_hessian_match_finite_differences(nu: float) -> None:
-    mesh = _block()
-    pot = NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, nu)
-    x = _deformed(mesh.x, 1)
-    assert relative_error(pot.gradient(x), fd_gradient(pot.energy, x, h=1e-8)) < 1e-5
-    H = dense_hessian(pot.hessian(x, "none"), x.shape[0])
-    assert relative_error(H, fd_hessian(pot.gradient, x, h=1e-9)) < 1e-5
-    assert np.allclose(H, H.T, rtol=0, atol=1e-9 * np.abs(H).max())
-
-
-@pytest.mark.parametrize("name", ["youngs_modulus", "poisson_ratio"])
-def test_parameter_gradient_matches_finite_differences(name: str) -> None:
-    mesh = _block()
-    x = _deformed(mesh.x, 2)
-    base = {"youngs_modulus": E_GEL, "poisson_ratio": NU_GEL}
-    step = 1e-6 * base[name]
-
-    def gradient_at(value: float) -> np.ndarray:
-        return NodalPressureNeoHookean(mesh.tets, mesh.x, **{**base, name: value}).gradient(x)
-
-    fd = (gradient_at(base[name] + step) - gradient_at(base[name] - step)) / (2 * step)
-    pot = NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL)
-    assert relative_error(pot.parameter_gradient(x, name), fd) < 1e-6
-    with pytest.raises(KeyError, match="density"):
-        pot.parameter_gradient(x, "density")
-
-
-@pytest.mark.parametrize("projection", ["clamp", "abs"])
-def test_the_projected_hessian_is_psd_where_the_exact_one_is_not(projection: str) -> None:
-    mesh = _block()
-    pot = NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL)
-    x = _deformed(mesh.x, 3, 6e-4)  # strains of order 0.5: pressures that make p d2J indefinite
-    exact = np.linalg.eigvalsh(dense_hessian(pot.hessian(x, "none"), x.shape[0]))
-    projected = np.linalg.eigvalsh(dense_hessian(pot.hessian(x, projection), x.shape[0]))
-    assert exact.min() < -1e-3 * exact.max()
-    assert projected.min() >= -1e-10 * projected.max()
-    # at rest the pressures vanish and the projection changes nothing (the small-strain response is exact)
-    rest_exact = dense_hessian(pot.hessian(mesh.x, "none"), x.shape[0])
-    assert relative_error(dense_hessian(pot.hessian(mesh.x, projection), x.shape[0]), rest_exact) < 1e-12
 
 
 def test_a_uniform_deformation_is_stable_neohookeans_at_large_strain() -> None:
@@ -89,7 +37,7 @@ def test_a_uniform_deformation_is_stable_neohookeans_at_large_strain() -> None:
 def test_the_small_strain_stiffness_is_the_independent_linear_nodal_pressure_element() -> None:
     """The rest Hessian equals the linearised element assembled from P1 strain operators (deviatoric Hooke per
     tet, bulk modulus on the nodal volume strains), and differs from the plain P1 stiffness."""
-    mesh = _block()
+    mesh = gel_block()
     pot = NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL)
     H = dense_hessian(pot.hessian(mesh.x, "none"), mesh.x.shape[0])
     assert relative_error(H, nodal_pressure_stiffness(mesh.x, mesh.tets, E_GEL, NU_GEL).toarray()) < 1e-12
@@ -99,9 +47,9 @@ def test_the_small_strain_stiffness_is_the_independent_linear_nodal_pressure_ele
 def test_the_widened_pattern_assembles_through_the_solver() -> None:
     """The ring blocks (padded with the node itself) go through the assembler's static pattern unchanged, and
     the pattern holds the vertex pairs two edges apart that the nodal term couples."""
-    mesh = _block()
+    mesh = gel_block()
     pot = NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL)
-    x = _deformed(mesh.x, 4)
+    x = deformed(mesh.x, 4)
     n = x.shape[0]
     blocks = pot.hessian(x, "none")
     assert blocks.vertices is pot.hessian(mesh.x, "clamp").vertices  # one array: the static pattern is kept
@@ -119,11 +67,11 @@ def test_the_widened_pattern_assembles_through_the_solver() -> None:
 def test_the_solvers_two_parts_sum_to_the_element() -> None:
     """The shear part (a Stable Neo-Hookean, for the fused kernel) plus the nodal volume term: the element's
     energy, gradient and exact Hessian; projected apart, their sum is PSD where the exact Hessian is not."""
-    mesh = _block()
+    mesh = gel_block()
     pot = NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL)
     shear, volume = pot.parts()
     assert type(shear) is StableNeoHookean
-    x = _deformed(mesh.x, 5, 6e-4)
+    x = deformed(mesh.x, 5, 6e-4)
     n = x.shape[0]
     assert shear.energy(x) + volume.energy(x) == pytest.approx(pot.energy(x), rel=1e-12)
     assert relative_error(shear.gradient(x) + volume.gradient(x), pot.gradient(x)) < 1e-12
@@ -137,7 +85,7 @@ def test_the_solvers_two_parts_sum_to_the_element() -> None:
 
 
 def test_bad_parameters_name_the_element() -> None:
-    mesh = _block()
+    mesh = gel_block()
     with pytest.raises(ConfigError, match="poisson_ratio"):
         NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, 0.5)
 
@@ -147,10 +95,10 @@ def test_a_nodal_pressure_gels_maxwell_branch_is_its_per_tet_neohookean() -> Non
     the same E, nu (at the identity relaxed state)."""
     from sim_core.candidates.gel_viscoelasticity import MaxwellBranch
 
-    mesh = _block()
+    mesh = gel_block()
     pot = NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL)
     branch = MaxwellBranch(pot, np.tile(np.eye(3), (mesh.tets.shape[0], 1, 1)), 0.5)
-    x = _deformed(mesh.x, 6)
+    x = deformed(mesh.x, 6)
     assert branch.energy(x) == pytest.approx(0.5 * StableNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL).energy(x), rel=1e-12)
 
 

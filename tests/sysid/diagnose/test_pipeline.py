@@ -71,6 +71,20 @@ def test_one_option_set_gives_both_stages_the_same_calibration(capsys):
     assert err.count("\n") == 1 and "--engine is gone" in err and "drive" in err
 
 
+def test_the_gel_element_reaches_both_stages_replays(capsys):
+    """``--gel-element`` (with or without ``--gel-resolution``) sets the ``simulation`` overrides of both stages'
+    replays; an unknown law is refused naming the choices."""
+    opts = options_from_args(build_parser().parse_args(["bag", "--gel-element", "green_strain"]))
+    assert opts.score.simulation == opts.signatures.simulation == {"gel_element": "green_strain"}
+    opts = options_from_args(build_parser().parse_args(["bag", "--gel-resolution", "10", "8", "5",
+                                                        "--gel-element", "nodal_pressure_neohookean"]))
+    assert opts.signatures.simulation == {"gel_resolution": [10, 8, 5], "gel_element": "nodal_pressure_neohookean"}
+    assert options_from_args(build_parser().parse_args(["bag"])).signatures.simulation is None
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["bag", "--gel-element", "mooney"])
+    assert "green_strain" in capsys.readouterr().err
+
+
 def test_the_recording_decides_the_stage(tmp_path, streams):
     from sysid.drive_calibration import DRIVE_MIN_DELTA_BIC, fit_drive  # noqa: F401  (the criterion's module)
     from sysid.evidence import load_evidence

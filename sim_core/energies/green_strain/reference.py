@@ -1,0 +1,137 @@
+"""Saint Venant-Kirchhoff tetrahedra: a solid whose elasticity is written in the Green strain.
+
+Per linear tet, with ``F`` the deformation gradient and ``E = (F^T F - I) / 2`` the Green-Lagrange strain::
+
+    psi(F) = mu tr(E^2) + lam / 2 tr(E)^2,        S = 2 mu E + lam tr(E) I,        P = F S,
+
+``mu``, ``lam`` the small-strain Lamé parameters of ``E``, ``nu`` (Ogden, Non-linear Elastic Deformations, 1984,
+sec. 4.4; Bonet and Wood, Nonlinear Continuum Mechanics for FE Analysis, 2nd ed., eq. 6.8). At small strain it is
+linear elasticity with ``E``, ``nu``, as Stable Neo-Hookean (:mod:`sim_core.energies.neohookean`) is; the two laws
+part at second order in the strain. The part that matters for a pressed and sheared gel at nu -> 0.5: in simple
+shear ``gamma`` the Green strain has ``E_zz = gamma^2 / 2`` with no change of volume, so ``lam tr(E)`` puts a
+compressive stress of order ``lam gamma^2 / 2`` normal to the sheared layer (``lam / mu = 9`` at nu 0.45), and in
+compression the law softens (``S_zz -> 0`` as the stretch falls to ``1 / sqrt 3`` uniaxially). This is the
+constitutive law of MuJoCo's flex solids (``plugin/elasticity/solid.cc``: the squared edge-length changes times a
+metric ``mu tr(T_i T_j) + lam tr(T_i) tr(T_j)``, i.e. StVK on linear tets), the engine of the reference recordings.
+It is here to measure what that law does to a pressed, sliding gel (docs/known_answers.md, "the slide"), not as a
+default.
+
+Derivatives (row-major ``vec F``, index ``3 i + j``)::
+
+    dP_ij / dF_ab = delta_ia S_bj + mu ((F F^T)_ia delta_jb + F_ib F_aj) + lam F_ij F_ab,
+
+a symmetric 9x9 per tet, mapped by ``dF/dx`` to 12x12 vertex blocks; the PSD projection clamps (or flips) its
+negative eigenvalues per tet (:func:`sim_core.energies.base.project_psd`, numerical: StVK has no compact analytic
+eigensystem). Inverted tets are not barriered (StVK's energy does not grow without bound as ``det F -> 0``); the
+pressed gel's strains (< 15 %) are far from it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.energies.base import BorrowedWorkspace, HessianBlocks, Projection, project_psd
+from sim_core.energies.neohookean.reference import StableNeoHookean
+
+
+def linear_lame_parameters(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:
+    """Small-strain Lamé parameters ``(mu, lam)`` in Pa of ``E`` (Pa), ``nu``."""
+    E, nu = float(youngs_modulus), float(poisson_ratio)
+    return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+
+
+def _linear_lame_derivatives(youngs_modulus: float, poisson_ratio: float, name: str) -> tuple[float, float]:
+    """``(d mu / d p, d lam / d p)`` for ``p`` = ``youngs_modulus`` or ``poisson_ratio``."""
+    E, nu = float(youngs_modulus), float(poisson_ratio)
+    if name == "youngs_modulus":
+        mu, lam = linear_lame_parameters(E, nu)
+        return mu / E, lam / E
+    return -E / (2.0 * (1.0 + nu) ** 2), E * (1.0 + 2.0 * nu**2) / ((1.0 + nu) * (1.0 - 2.0 * nu)) ** 2
+
+
+class GreenStrainSolid(BorrowedWorkspace):
+    """Saint Venant-Kirchhoff energy of a set of linear tetrahedra (module docstring).
+
+    Args:
+        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`StableNeoHookean`'s (tets ``(k, 4)``, rest
+            positions ``(n, 3)`` m, small-strain ``E`` in Pa and ``nu``), and raising as it does.
+
+    Attributes:
+        per_tet: the Stable Neo-Hookean of the same ``E``, ``nu`` on the same tets, whose ``dF/dx``, rest volumes
+            and deformation memo this reads (and the gel's Maxwell branch takes).
+        mu, lam: the small-strain Lamé parameters in Pa.
+    """
+
+    parameter_names: tuple[str, ...] = ("youngs_modulus", "poisson_ratio")
+    _host = "per_tet"
+
+    def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
+        self.per_tet = StableNeoHookean(tets, x_rest, youngs_modulus, poisson_ratio)  # validates E, nu, the mesh
+        self.youngs_modulus, self.poisson_ratio = self.per_tet.youngs_modulus, self.per_tet.poisson_ratio
+        self.mu, self.lam = linear_lame_parameters(self.youngs_modulus, self.poisson_ratio)
+        self.tets, self.tet_rest_volume = self.per_tet.tets, self.per_tet.tet_rest_volume
+
+    def _strain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(F, E, tr E)`` per tet at ``x`` ``(n, 3)``: shapes ``(k, 3, 3)``, ``(k, 3, 3)``, ``(k,)``."""
+        F = self.per_tet._deformation(np.asarray(x, dtype=float))
+        E = 0.5 * (np.matmul(np.swapaxes(F, 1, 2), F) - np.eye(3))
+        return F, E, np.trace(E, axis1=1, axis2=2)
+
+    @staticmethod
+    def _pk1(F: np.ndarray, E: np.ndarray, trace: np.ndarray, mu: float, lam: float) -> np.ndarray:
+        """``P = F (2 mu E + lam tr(E) I)`` in Pa, ``(k, 3, 3)``."""
+        return np.matmul(F, 2.0 * mu * E + lam * trace[:, None, None] * np.eye(3))
+
+    def d2psi_dF2(self, x: np.ndarray) -> np.ndarray:
+        """The exact 9x9 ``d2psi/dF2`` per tet at ``x`` (module docstring), ``(k, 9, 9)`` in Pa."""
+        F, E, trace = self._strain(x)
+        k = F.shape[0]
+        S = 2.0 * self.mu * E + self.lam * trace[:, None, None] * np.eye(3)
+        eye = np.eye(3)
+        A = np.einsum("ia,kbj->kijab", eye, S)
+        A += self.mu * np.einsum("kia,jb->kijab", np.matmul(F, np.swapaxes(F, 1, 2)), eye)
+        A += self.mu * np.einsum("kib,kaj->kijab", F, F)
+        A += self.lam * np.einsum("kij,kab->kijab", F, F)
+        return A.reshape(k, 9, 9)
+
+    def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``F`` per tet at ``x`` ``(n, 3)``, shape ``(k, 3, 3)`` (the gel candidates' relaxed states read it)."""
+        return self.per_tet.deformation_gradient(x)
+
+    # ------------------------------------------------------------------ Potential contract
+    def energy(self, x: np.ndarray) -> float:
+        """``sum_t V_t (mu tr(E_t^2) + lam / 2 tr(E_t)^2)`` in J at ``x`` ``(n, 3)`` (0 at rest)."""
+        _, E, trace = self._strain(x)
+        psi = self.mu * np.einsum("kij,kij->k", E, E) + 0.5 * self.lam * trace**2
+        return float(np.dot(self.tet_rest_volume, psi))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N, shape ``(n, 3)``: ``V_t P(F_t) dF/dx`` summed per vertex."""
+        x = np.asarray(x, dtype=float)
+        F, E, trace = self._strain(x)
+        return self.per_tet._forces_from_pk1(x, self._pk1(F, E, trace, self.mu, self.lam))
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Per-tet 12x12 blocks in N/m: ``V_t (dF/dx)^T A (dF/dx)`` with ``A`` the 9x9 ``d2psi/dF2`` exact
+        (``"none"``) or with its negative eigenvalues clamped / flipped (``"clamp"`` / ``"abs"``).
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        A = project_psd(self.d2psi_dF2(x), projection)
+        M = self.per_tet.tet_dvecF_dx
+        H = np.matmul(np.swapaxes(M, 1, 2), np.matmul(A, M)) * self.tet_rest_volume[:, None, None]
+        return HessianBlocks(self.tets, H)
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        """d(dE/dx)/dp for ``p`` in :attr:`parameter_names`, shape ``(n, 3)`` (``P`` is linear in ``mu``, ``lam``).
+
+        Raises:
+            KeyError: unknown parameter name.
+        """
+        if name not in self.parameter_names:
+            raise KeyError(f"GreenStrainSolid has no parameter {name!r}; known: {self.parameter_names}")
+        x = np.asarray(x, dtype=float)
+        dmu, dlam = _linear_lame_derivatives(self.youngs_modulus, self.poisson_ratio, name)
+        F, E, trace = self._strain(x)
+        return self.per_tet._forces_from_pk1(x, self._pk1(F, E, trace, dmu, dlam))
