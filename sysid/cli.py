@@ -28,7 +28,6 @@ from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA,
                        STOP_TRIAL_SIGMA)
 from sysid.fit_recording import FitOptions, fit_recording
-from sysid.recalibration import ROUNDS
 from sim_core.batch.sizing import batch_size_arg
 
 PROG = "thinshell sysid"
@@ -136,11 +135,6 @@ def build_parser() -> argparse.ArgumentParser:
                         "point) at its start value: no step along a direction the data do not determine; it is "
                         "reported NOT IDENTIFIED at its start with its interval (default: on; "
                         "--no-hold-unidentified: every parameter is stepped)")
-    p.add_argument("--recalibrate-rounds", type=int, default=ROUNDS, metavar="N",
-                   help="most rounds in which the calibration's stick regularisation (contact.eps_v, fitted on a secant "
-                        "at the start's materials) is re-estimated at the fitted materials and the materials refitted "
-                        "where it moves, so that the start does not leak into the answer through it (sysid.recalibration; "
-                        "default: %(default)s; 0: held at the calibration's value)")
     p.add_argument("--fixed-gains", action="store_true",
                    help="hold the sensor gains of the calibration at the start through the fit (default: refit them, "
                         "within their prior and in closed form, to every replay, so that gains calibrated at an off "
@@ -271,7 +265,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,
                       robust=None if args.robust == "none" else args.robust, drive=args.drive,
                       tack=args.tack, hold_unidentified=args.hold_unidentified,
-                      first_step=args.first_step or None, recalibrate_rounds=args.recalibrate_rounds)
+                      first_step=args.first_step or None)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:

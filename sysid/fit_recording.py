@@ -31,7 +31,6 @@ from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, STOP_RM
                        FitResult, fit)
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.observation import ObservationModel
-from sysid.recalibration import ROUNDS, alternate
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
 from sysid.tack import nominal_tack
@@ -110,11 +109,6 @@ class FitOptions:
         first_step: width of the fit's first trust region per search coordinate (:func:`sysid.fit.fit`
             ``first_step``; default :data:`sysid.fit.FIRST_STEP`, a factor 1.65 on a log parameter); None: the
             method's own (a factor 13.8 within the default bounds).
-        recalibrate_rounds: most rounds in which the calibration's secant parameters (the stick regularisation
-            ``contact.eps_v``) are re-estimated at the fitted materials and the materials refitted where they move
-            (:func:`sysid.recalibration.alternate`; default :data:`sysid.recalibration.ROUNDS`), so that the value
-            found at the start's materials does not carry the start into the answer. 0: held at the calibration's
-            value (before session 53).
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -154,7 +148,6 @@ class FitOptions:
     tack: bool = False
     hold_unidentified: bool = True
     first_step: float | None = FIRST_STEP
-    recalibrate_rounds: int = ROUNDS
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -174,8 +167,6 @@ class FitOptions:
                 raise ConfigError(f"FitOptions: {name} must be > 0 s, got {value}")
         if self.calibration_max_replays is not None and int(self.calibration_max_replays) < 1:
             raise ConfigError(f"FitOptions: calibration_max_replays must be >= 1, got {self.calibration_max_replays}")
-        if int(self.recalibrate_rounds) < 0:
-            raise ConfigError(f"FitOptions: recalibrate_rounds must be >= 0, got {self.recalibrate_rounds}")
         for name in ("max_nfev", "workers"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"FitOptions: {name} must be >= 1, got {getattr(self, name)}")
@@ -298,23 +289,14 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
             on_calibration(sensor)
     if sensor is not None and options.profile_gains:
         model.gain_profile = GainProfile(model, sensor.gain_prior)
-    def material_fit(initial=None, global_method=options.global_method):
-        return fit(model, list(options.params), initial=initial, jacobian=jacobian, global_method=global_method,
-                   global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
-                   fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
-                   stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
-                   stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
-                   batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
-                   stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options),
-                   hold_unidentified=options.hold_unidentified, first_step=options.first_step)
-
-    result = material_fit()
-    rounds = []
-    if sensor is not None and options.recalibrate_rounds:  # the secant values at the fitted materials (no global phase)
-        result, rounds = alternate(
-            model, result, sensor, lambda values: material_fit(values, None),
-            lambda f: None if model.gain_profile is None else model.gain_profile.raw_of(f.prediction_final),
-            options.recalibrate_rounds)
+    result = fit(model, list(options.params), jacobian=jacobian, global_method=options.global_method,
+                 global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
+                 fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
+                 stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
+                 stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
+                 batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
+                 stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options),
+                 hold_unidentified=options.hold_unidentified, first_step=options.first_step)
     result.warnings[:0] = list(notes)
     if model.gain_profile is not None:  # the gains at the fitted values, as the fit's best replay took them
         found = model.gain_profile.calibration_of(result.prediction_final)
@@ -339,8 +321,6 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         doc["diagnostics"]["drive"] = drive.summary()
     if tack is not None:
         doc["diagnostics"]["tack"] = tack.summary()
-    if rounds:
-        doc["diagnostics"]["recalibration"] = [r.summary() for r in rounds]
     # the fitted scene is built (and checked) before anything is written
     scene_doc = None if write_scene is None else fitted_scene_from_result(
         result, evidence, options.t_max, calibrated=None if sensor is None else sensor.params)

@@ -61,7 +61,6 @@ class GainProfile:
         self.nominal = nominal_sensor_calibration(model)
         self.last: tuple[SensorCalibration, dict[str, float]] | None = None
         self._of: dict[int, tuple[SensorCalibration, dict[str, float]]] = {}
-        self._raw: dict[int, tuple[dict[str, np.ndarray], Mapping[str, np.ndarray]]] = {}
 
     def __call__(self, raw: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The calibrated prediction of the raw aligned prediction ``raw`` (channel -> array), with the gains
@@ -72,19 +71,12 @@ class GainProfile:
         out = cal.apply(raw, m.marker_rest)
         self.last = (cal, asked)
         self._of[id(out)] = self.last
-        self._raw[id(out)] = (out, raw)  # the calibrated dict kept alive: its id is not reused
         return out
 
     def calibration_of(self, prediction: Mapping[str, np.ndarray]) -> tuple[SensorCalibration, dict[str, float]] | None:
         """``(calibration, asked)`` that made the calibrated ``prediction`` (a dict this profile returned and that
         is still alive), or None."""
         return self._of.get(id(prediction))
-
-    def raw_of(self, prediction: Mapping[str, np.ndarray]) -> Mapping[str, np.ndarray] | None:
-        """The raw prediction whose calibration is the calibrated ``prediction`` (a dict this profile returned and that
-        is still alive), or None."""
-        kept = self._raw.get(id(prediction))
-        return kept[1] if kept is not None and kept[0] is prediction else None
 
     @staticmethod
     def flags_of(found: tuple[SensorCalibration, dict[str, float]], prior: GainPrior, model) -> dict[str, Any]:
