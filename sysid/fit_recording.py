@@ -110,8 +110,9 @@ class FitOptions:
             ``first_step``; default :data:`sysid.fit.FIRST_STEP`, a factor 1.65 on a log parameter); None: the
             method's own (a factor 13.8 within the default bounds).
         fit_eps_v: fit the calibration's secant parameters (the lagged friction's stick regularisation
-            ``contact.eps_v``, :mod:`sysid.calibration_secant`) with ``params``, from the calibration's value (True,
-            the default; its Jacobian column a forward difference, one plain replay per Jacobian,
+            ``contact.eps_v``, :mod:`sysid.calibration_secant`) with ``params``, from the calibration's value, where
+            the calibration took a value other than the scene's (True, the default; its Jacobian column a forward
+            difference, one plain replay per Jacobian,
             :data:`sysid.jacobians.DIFFERENCE_STEPS`), so that the fit's own cost decides it jointly with the materials.
             False: held at the calibration's value, which a 2-replay secant found at the start's materials and so
             carries the start into the answer (session 52: 1.7 / 2.4 / 3.1 mm/s on nominal_s101 from starts 0.7 / 1.0 /
@@ -299,8 +300,10 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
             on_calibration(sensor)
     if sensor is not None and options.profile_gains:
         model.gain_profile = GainProfile(model, sensor.gain_prior)
-    # the calibration's secant values fitted with the materials, from where the calibration left them
-    secant = () if sensor is None or sensor.secant is None or not options.fit_eps_v else sensor.secant.names
+    # the calibration's secant values fitted with the materials, from where the calibration left them, where it took
+    # them (found at the start's materials); a stage that left the scene's values leaves nothing of the start in them
+    stage = None if sensor is None or not options.fit_eps_v else sensor.secant
+    secant = stage.names if stage is not None and stage.accepted else ()
     fitted = [*options.params, *(n for n in secant if n not in options.params)]
     result = fit(model, fitted, jacobian=jacobian, global_method=options.global_method,
                  global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
