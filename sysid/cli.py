@@ -135,6 +135,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "point) at its start value: no step along a direction the data do not determine; it is "
                         "reported NOT IDENTIFIED at its start with its interval (default: on; "
                         "--no-hold-unidentified: every parameter is stepped)")
+    p.add_argument("--fit-eps-v", action=argparse.BooleanOptionalAction, default=True,
+                   help="fit the friction's stick regularisation contact.eps_v (calibrated on a secant at the start's "
+                        "materials) with the materials, from the calibration's value, so that the start does not leak "
+                        "into the answer through it (default: on; --no-fit-eps-v: held at the calibration's value)")
     p.add_argument("--fixed-gains", action="store_true",
                    help="hold the sensor gains of the calibration at the start through the fit (default: refit them, "
                         "within their prior and in closed form, to every replay, so that gains calibrated at an off "
@@ -265,7 +269,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,
                       robust=None if args.robust == "none" else args.robust, drive=args.drive,
                       tack=args.tack, hold_unidentified=args.hold_unidentified,
-                      first_step=args.first_step or None)
+                      first_step=args.first_step or None, fit_eps_v=args.fit_eps_v)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:

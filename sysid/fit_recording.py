@@ -109,6 +109,16 @@ class FitOptions:
         first_step: width of the fit's first trust region per search coordinate (:func:`sysid.fit.fit`
             ``first_step``; default :data:`sysid.fit.FIRST_STEP`, a factor 1.65 on a log parameter); None: the
             method's own (a factor 13.8 within the default bounds).
+        fit_eps_v: fit the calibration's secant parameters (the lagged friction's stick regularisation
+            ``contact.eps_v``, :mod:`sysid.calibration_secant`) with ``params``, from the calibration's value, where
+            the calibration took a value other than the scene's (True, the default; its Jacobian column a forward
+            difference, one plain replay per Jacobian,
+            :data:`sysid.jacobians.DIFFERENCE_STEPS`), so that the fit's own cost decides it jointly with the materials.
+            False: held at the calibration's value, which a 2-replay secant found at the start's materials and so
+            carries the start into the answer (session 52: 1.7 / 2.4 / 3.1 mm/s on nominal_s101 from starts 0.7 / 1.0 /
+            1.3 x the scene's materials; on this simulator's concealed-arm press-slide from 1.3 x, 14.7 mm/s against
+            the recording's 10 and the gel modulus 0.835 x the truth, 0.949 x with it fitted; docs/benchmarks_log.md,
+            session 53, 49start).
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -148,6 +158,7 @@ class FitOptions:
     tack: bool = False
     hold_unidentified: bool = True
     first_step: float | None = FIRST_STEP
+    fit_eps_v: bool = True
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -289,7 +300,12 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
             on_calibration(sensor)
     if sensor is not None and options.profile_gains:
         model.gain_profile = GainProfile(model, sensor.gain_prior)
-    result = fit(model, list(options.params), jacobian=jacobian, global_method=options.global_method,
+    # the calibration's secant values fitted with the materials, from where the calibration left them, where it took
+    # them (found at the start's materials); a stage that left the scene's values leaves nothing of the start in them
+    stage = None if sensor is None or not options.fit_eps_v else sensor.secant
+    secant = stage.names if stage is not None and stage.accepted else ()
+    fitted = [*options.params, *(n for n in secant if n not in options.params)]
+    result = fit(model, fitted, jacobian=jacobian, global_method=options.global_method,
                  global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
                  fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
