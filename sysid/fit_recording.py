@@ -23,7 +23,9 @@ from typing import Callable, Sequence
 
 from sim_core.errors import ConfigError
 from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
+from sysid.calibration_secant import SECANT_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
+from sysid.diagnose.probe_worker import calibration_probe
 from sysid.drive_calibration import fit_drive
 from sysid.evidence import load_evidence
 from sysid.gain_profile import GainProfile
@@ -109,6 +111,10 @@ class FitOptions:
         first_step: width of the fit's first trust region per search coordinate (:func:`sysid.fit.fit`
             ``first_step``; default :data:`sysid.fit.FIRST_STEP`, a factor 1.65 on a log parameter); None: the
             method's own (a factor 13.8 within the default bounds).
+        probe_worker: make the calibration's secant probe in a second process beside its start replay, as
+            ``thinshell diagnose`` does (:func:`sysid.diagnose.probe_worker.calibration_probe`: the same replays
+            and values, one replay less wall time on two cores; where it applies); False (``thinshell sysid
+            --one-process``): every replay in this process.
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -148,6 +154,7 @@ class FitOptions:
     tack: bool = False
     hold_unidentified: bool = True
     first_step: float | None = FIRST_STEP
+    probe_worker: bool = True
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -283,8 +290,17 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         on_model(model, notes)
     sensor = None
     if (options.sensor_calibration or calibrated) and model.sensor is not None:  # a task scene may have no sensor
-        sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
-                           max_replays=options.calibration_max_replays, drive=options.drive)
+        # the secant stage's probe forked before this process starts Taichi, beside the calibration's start replay
+        worker = None if not options.probe_worker else calibration_probe(
+            model, calibrated, secant_replays=SECANT_REPLAYS, max_replays=options.calibration_max_replays,
+            max_time=options.calibration_max_time)
+        try:
+            sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
+                               max_replays=options.calibration_max_replays, drive=options.drive,
+                               secant_first=None if worker is None else worker.result)
+        finally:
+            if worker is not None:
+                worker.close()
         if on_calibration is not None:
             on_calibration(sensor)
     if sensor is not None and options.profile_gains:

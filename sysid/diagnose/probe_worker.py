@@ -35,6 +35,23 @@ from sysid.calibration_secant import (CONTACT_ONSET_PARAMETERS, SECANT_PARAMETER
                                       resume_before_contact)
 
 
+def calibration_probe(model, params: Sequence[str], *, secant_replays: int, max_replays: int | None,
+                      max_time: float | None, names: Sequence[str] = SECANT_PARAMETERS) -> "ProbeWorker | None":
+    """A :class:`ProbeWorker` for :func:`sysid.calibration.calibrate` of ``model`` with ``params``, or None where
+    its replay would not be the secant stage's first one or cannot run: no secant replay (``secant_replays``
+    0), a parameter fit that may step (parameters with a budget ``max_replays`` other than one replay, or a
+    time budget ``max_time``), no secant parameter ``names`` left outside ``params``, or Taichi already started
+    in this process (a forked child could not run it). Through a drive the child replays through the one
+    ``model`` holds when it is forked (set it first). Used by ``thinshell diagnose``'s signature stage and by
+    ``thinshell sysid`` (:func:`sysid.fit_recording.fit_recording`)."""
+    from sim_core.ti_backend import current_arch
+
+    if not (secant_replays > 0 and max_time is None and (not params or max_replays == 1) and current_arch() is None):
+        return None
+    names = tuple(n for n in names if n not in tuple(params))
+    return ProbeWorker(model, params, names) if names else None
+
+
 class ProbeWorker:
     """The secant stage's first replay made in a forked child process, which then makes further replays on
     request until closed (module docstring).

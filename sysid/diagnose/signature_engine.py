@@ -46,13 +46,13 @@ import numpy as np
 from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import (CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS, CalibrationResult, calibrate,
                                kinematic_reference, nominal_sensor_calibration)
-from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS
+from sysid.calibration_secant import SECANT_REPLAYS
 from sysid.drive_calibration import fit_drive
 from sysid.diagnose.damping_refit import refit_damping
 from sysid.diagnose.heldout import leave_one_event_out
 from sysid.diagnose.gain_guard import split_by_gain
 from sysid.diagnose.plasticity_refit import refit_plasticity
-from sysid.diagnose.probe_worker import ProbeWorker
+from sysid.diagnose.probe_worker import ProbeWorker, calibration_probe
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
 from sysid.diagnose.stiction_refit import cross_channel_refit
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
@@ -261,18 +261,14 @@ def without_replays(p: Prepared) -> Prepared:
 
 def probe_worker_for(model: ObservationModel, params: Sequence[str], settings: SignatureSettings) -> ProbeWorker | None:
     """A :class:`~sysid.diagnose.probe_worker.ProbeWorker` for the calibration of ``model``, or None where
-    its replay would not be the secant stage's first one or cannot run: ``settings.probe_worker`` off,
-    no calibration or no secant replay, a parameter fit that may step (a budget other than one replay, or a
-    time budget), or Taichi already started here (a forked child could not run it). Through a drive the child
-    replays through the one ``model`` holds when it is forked (:func:`prepare` sets it first)."""
-    from sim_core.ti_backend import current_arch
-
-    if not (settings.probe_worker and settings.calibrate and settings.calibration_secant_replays > 0
-            and settings.calibration_max_time is None
-            and (not params or settings.calibration_max_replays == 1) and current_arch() is None):
+    ``settings.probe_worker`` is off, there is no calibration, or :func:`~sysid.diagnose.probe_worker.calibration_probe`
+    finds its replay would not be the secant stage's first one or cannot run (no secant replay, a parameter fit
+    that may step: a budget other than one replay, or a time budget; Taichi already started here). Through a drive
+    the child replays through the one ``model`` holds when it is forked (:func:`prepare` sets it first)."""
+    if not (settings.probe_worker and settings.calibrate):
         return None
-    names = tuple(n for n in SECANT_PARAMETERS if n not in tuple(params))
-    return ProbeWorker(model, params, names) if names else None
+    return calibration_probe(model, params, secant_replays=settings.calibration_secant_replays,
+                             max_replays=settings.calibration_max_replays, max_time=settings.calibration_max_time)
 
 
 # ================================================================================ refits
