@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from sysid.diagnose.probe_worker import calibration_probe
 from sysid.diagnose.signature_engine import SignatureSettings, probe_worker_for
 
 REPO = Path(__file__).resolve().parents[3]
@@ -87,3 +88,57 @@ def test_diagnose_command_makes_the_probe_beside_unless_asked_for_one_process():
 
     assert signature_settings(build_parser().parse_args(["bag"])).probe_worker
     assert not signature_settings(build_parser().parse_args(["bag", "--one-process"])).probe_worker
+
+
+THROUGH_DRIVE = """
+import sys
+import numpy as np
+from sim_core.ti_backend import current_arch
+from sysid.calibration_secant import first_probe_values
+from sysid.diagnose.probe_worker import calibration_probe
+from sysid.drive_calibration import fit_drive
+from sysid.evidence import load_evidence
+from sysid.observation import ObservationModel
+
+model = ObservationModel(load_evidence(sys.argv[1]), dt=0.01, t_max=0.8, simulation={"gel_resolution": [4, 3, 2]},
+                         arch="cpu")
+drive = fit_drive(model)
+assert drive.compliant, drive.why
+model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
+assert current_arch() is None, "the drive's calibration started Taichi: no replay worker can fork after it"
+worker = calibration_probe(model, (), secant_replays=2, max_replays=1, max_time=None)
+assert worker is not None
+made = worker.result()
+assert made is not None
+values = first_probe_values(model, {}, ("contact.eps_v",))
+assert made.values == values, (made.values, values)
+here = model.simulate(values)
+assert here.drive is not None  # through the series drive
+for ch in ("markers_xyz", "markers_uv", "wrench", "sheet_points"):
+    assert np.array_equal(getattr(made.trace, ch), getattr(here, ch)), ch
+worker.close()
+print("same replay through the drive", drive.replay_stiffness)
+"""
+
+
+def test_probe_forks_after_the_drive_is_calibrated_and_replays_through_it():
+    """The drive's calibration reads the sensor's normal from the scene without starting Taichi, so the
+    calibration's secant probe still forks (diagnose's signature stage and ``thinshell sysid`` calibrate the drive
+    first): until session 53 the normal was read from a started simulation, and every diagnosis through a drive
+    made its probe in one process. The forked replay goes through the drive, bit for bit the one made here."""
+    from tests.sysid.conftest import reference_bag
+
+    proc = subprocess.run([sys.executable, "-c", THROUGH_DRIVE, str(reference_bag("nominal_s101"))], cwd=REPO,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "same replay through the drive" in proc.stdout
+
+
+def test_sysid_command_makes_the_probe_beside_unless_asked_for_one_process():
+    from sysid.cli import build_parser, fit_options
+    from sysid.fit_recording import FitOptions
+
+    assert FitOptions().probe_worker and fit_options(build_parser().parse_args(["bag"])).probe_worker
+    assert not fit_options(build_parser().parse_args(["bag", "--one-process"])).probe_worker
+    with pytest.raises(ValueError, match="no secant parameter"):
+        calibration_probe(None, ("contact.eps_v",), secant_replays=2, max_replays=1, max_time=None)
