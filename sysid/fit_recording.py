@@ -279,30 +279,32 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                                  simulation=simulation, arch=options.arch)
     notes = tuple(str(w.message) for w in caught)
     calibrated = tuple(p for p in options.calibration_params if p not in options.params)
-    for name in (*options.params, *calibrated):  # an unknown name fails here, before the calibration's replay
-        model.parameter_value(name)
     drive = fit_drive(model) if options.drive and model.sensor is not None else None
     if drive is not None:
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     tack = nominal_tack(model) if options.tack and model.sensor is not None else None
     jacobian = options.jacobian
-    if on_model is not None:
-        on_model(model, notes)
     sensor = None
-    if (options.sensor_calibration or calibrated) and model.sensor is not None:  # a task scene may have no sensor
-        # the secant stage's probe forked before this process starts Taichi, beside the calibration's start replay
-        worker = None if not options.probe_worker else calibration_probe(
-            model, calibrated, secant_replays=SECANT_REPLAYS, max_replays=options.calibration_max_replays,
-            max_time=options.calibration_max_time)
-        try:
+    calibrating = (options.sensor_calibration or calibrated) and model.sensor is not None  # a task scene may have none
+    # the calibration's secant probe forked before this process starts Taichi (reading a parameter does), through
+    # the drive, to replay beside the calibration's start replay
+    worker = None if not (calibrating and options.probe_worker) else calibration_probe(
+        model, calibrated, secant_replays=SECANT_REPLAYS, max_replays=options.calibration_max_replays,
+        max_time=options.calibration_max_time)
+    try:
+        for name in (*options.params, *calibrated):  # an unknown name fails here, before the calibration's replay
+            model.parameter_value(name)
+        if on_model is not None:
+            on_model(model, notes)
+        if calibrating:
             sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
                                max_replays=options.calibration_max_replays, drive=options.drive,
                                secant_first=None if worker is None else worker.result)
-        finally:
-            if worker is not None:
-                worker.close()
-        if on_calibration is not None:
-            on_calibration(sensor)
+    finally:
+        if worker is not None:
+            worker.close()
+    if sensor is not None and on_calibration is not None:
+        on_calibration(sensor)
     if sensor is not None and options.profile_gains:
         model.gain_profile = GainProfile(model, sensor.gain_prior)
     result = fit(model, list(options.params), jacobian=jacobian, global_method=options.global_method,
