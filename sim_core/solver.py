@@ -461,8 +461,6 @@ class NewtonSolver:
             fixed = fixed | self._sleep.mask  # held at their positions (x_target is state_in.x there)
         (free, fixed_dofs), x_n = self._free_dofs(fixed), state_in.x
         x = x_n.copy() if guess is None else guess.copy()
-        if cfg.extrapolated_start and guess is None:  # the first-order predictor x^n + dt v^n
-            x += dt * state_in.v
         if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
             carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
                                 openings, fixed, x_target, x)

@@ -143,14 +143,6 @@ class SolverConfig:
             moved 0.2 mm in the air: 1 Newton iteration instead of 3). Off by default (the benchmarks'
             and the replays' steps are those from ``x^n``); the sim node turns it on. Not with
             ``lockstep``; ignored with a position guess (``Control.position_guess``).
-        extrapolated_start: start each step's Newton iterations at ``x^n + dt v^n`` (the free vertices moved on at
-            their last velocity; a first-order predictor) instead of at ``x^n``: the step minimises the same
-            potential and is accepted by the same tests, so its result differs from the one reached from ``x^n``
-            by less than the Newton tolerance (``tol_velocity * dt`` per step), while a body moving steadily (a
-            card sliding under a pad, a gel sheared along) starts near where the step ends. Applied before
-            ``carried_start``; ignored with a position guess (``Control.position_guess``). Off by default; the
-            replays of system identification turn it on (:class:`sysid.observation.ObservationModel`); a lockstep
-            batch starts each copy so (the stacked ``x^n + dt v^n``), as its separate solve would.
         cg_precision: the storage of a lockstep batch's batched CG (``linear_solver="pcg"``): ``"mixed"`` (default)
             keeps its operator's values and its preconditioner as float32 on the device, its vectors, sums and
             factorisations float64 (:mod:`sim_core.ti_kernels.precision`); ``"double"`` everything float64. Its solves
@@ -186,7 +178,6 @@ class SolverConfig:
     sleeping: bool = False
     sleep_velocity: float = 1e-7
     carried_start: bool = False
-    extrapolated_start: bool = False
     cg_precision: str = "mixed"
     envelope_precision: str = "double"
 

@@ -366,10 +366,7 @@ class ObservationModel:
         step in substeps (:data:`REPLAY_DT_HALVINGS`; counted in its ``step_totals``)."""
         if self._sim is None:
             # the backend starts (Taichi initialised once) with the solver; ConfigError names a problem
-            # each step's Newton iterations start at x^n + dt v^n (SolverConfig.extrapolated_start): on nominal_s101
-            # 2.73 -> 2.02 Newton directions a drive evaluation, a replay 8.9 -> 6.6 CPU s (session 53)
-            config = SolverConfig(backend=backend_of_arch(self.arch), dt_halvings_on_failure=REPLAY_DT_HALVINGS,
-                                  extrapolated_start=True)
+            config = SolverConfig(backend=backend_of_arch(self.arch), dt_halvings_on_failure=REPLAY_DT_HALVINGS)
             model = build_task_scene(self.scene, self._base_dir) if self.task else load_scene(self.scene)
             self._sim = Simulation(model, dt=self.dt, solver_config=config)
             if self.task:
