@@ -219,12 +219,23 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
         drive = fit_drive(model)
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     worker = probe_worker_for(model, params, settings)
+    beside: dict[str, Any] = {}
+
+    def kinematic_beside(values: Mapping[str, float]) -> None:
+        # a secant replay about to be made here, its probe taken: the kinematic reference at its values in the
+        # probe process beside it (taken where these become the calibrated values, as they do when the step is
+        # accepted; else replayed after the calibration as before)
+        if worker is not None and not beside and math.isfinite(model.drive_stiffness) and worker.submit(
+                {n: values[n] for n in params if n in values}, values, kinematic=True):
+            beside["values"] = dict(values)
+
     try:
         cal = calibrate(model, params, max_nfev=settings.calibration_max_nfev, workers=settings.workers,
                         max_time=settings.calibration_max_time, max_replays=settings.calibration_max_replays,
                         secant_replays=settings.calibration_secant_replays if settings.calibrate else 0,
                         drive=settings.calibration_drive and settings.calibrate,
-                        secant_first=None if worker is None else worker.result, batched=settings.batched,
+                        secant_first=None if worker is None else worker.result,
+                        secant_before=None if worker is None else kinematic_beside, batched=settings.batched,
                         batch_size=settings.batch_size)
     except (CalibrationError, SimulationDivergedError) as err:
         # keep what the recording alone can tell (the sensor-chain tests) and say why the rest is missing
@@ -235,13 +246,16 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
         if worker is not None:
             worker.close()
         raise
+    made = worker.collect() if beside else None
+    if made is not None and beside["values"] != dict(cal.params):
+        made = None  # the step was not taken: the calibrated values are another replay's
     if worker is not None and not cal.prediction:
         worker.close()
         worker = None
     prediction = {ch: np.asarray(v, dtype=float) for ch, v in (cal.prediction or {}).items()}
     reference = None
     try:
-        reference = kinematic_reference(model, cal) if prediction else None
+        reference = kinematic_reference(model, cal, made) if prediction else None
     except SimulationDivergedError as err:
         notes.append(f"{bag}: the replay with the recorded pose imposed diverged ({err}); gel damping is read "
                      "against the drive's replay")

@@ -116,6 +116,18 @@ here = model.simulate(values)
 assert here.drive is not None  # through the series drive
 for ch in ("markers_xyz", "markers_uv", "wrench", "sheet_points"):
     assert np.array_equal(getattr(made.trace, ch), getattr(here, ch)), ch
+# the kinematic reference asked of the child (diagnose's, beside the calibration's step): the recorded pose
+# imposed there, the drive kept for its later replays
+step = {**values, "contact.eps_v": values["contact.eps_v"] / 3.0}
+assert worker.submit({}, step, kinematic=True)
+there = worker.collect()
+model.set_drive_stiffness(float("inf"))
+kinematic = model.simulate(step)
+model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
+assert there.drive is None and kinematic.drive is None
+for ch in ("markers_xyz", "markers_uv", "wrench", "sheet_points"):
+    assert np.array_equal(getattr(there, ch), getattr(kinematic, ch)), ch
+assert worker.submit({}, step) and worker.collect().drive is not None
 worker.close()
 print("same replay through the drive", drive.replay_stiffness)
 """
