@@ -90,62 +90,6 @@ def test_diagnose_command_makes_the_probe_beside_unless_asked_for_one_process():
     assert not signature_settings(build_parser().parse_args(["bag", "--one-process"])).probe_worker
 
 
-THROUGH_DRIVE = """
-import sys
-import numpy as np
-from sim_core.ti_backend import current_arch
-from sysid.calibration_secant import first_probe_values
-from sysid.diagnose.probe_worker import calibration_probe
-from sysid.drive_calibration import fit_drive
-from sysid.evidence import load_evidence
-from sysid.observation import ObservationModel
-
-model = ObservationModel(load_evidence(sys.argv[1]), dt=0.01, t_max=0.8, simulation={"gel_resolution": [4, 3, 2]},
-                         arch="cpu")
-drive = fit_drive(model)
-assert drive.compliant, drive.why
-model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
-assert current_arch() is None, "the drive's calibration started Taichi: no replay worker can fork after it"
-worker = calibration_probe(model, (), secant_replays=2, max_replays=1, max_time=None)
-assert worker is not None
-made = worker.result()
-assert made is not None
-values = first_probe_values(model, {}, ("contact.eps_v",))
-assert made.values == values, (made.values, values)
-here = model.simulate(values)
-assert here.drive is not None  # through the series drive
-for ch in ("markers_xyz", "markers_uv", "wrench", "sheet_points"):
-    assert np.array_equal(getattr(made.trace, ch), getattr(here, ch)), ch
-# the kinematic reference asked of the child (diagnose's, beside the calibration's step): the recorded pose
-# imposed there, the drive kept for its later replays
-step = {**values, "contact.eps_v": values["contact.eps_v"] / 3.0}
-assert worker.submit({}, step, kinematic=True)
-there = worker.collect()
-model.set_drive_stiffness(float("inf"))
-kinematic = model.simulate(step)
-model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
-assert there.drive is None and kinematic.drive is None
-for ch in ("markers_xyz", "markers_uv", "wrench", "sheet_points"):
-    assert np.array_equal(getattr(there, ch), getattr(kinematic, ch)), ch
-assert worker.submit({}, step) and worker.collect().drive is not None
-worker.close()
-print("same replay through the drive", drive.replay_stiffness)
-"""
-
-
-def test_probe_forks_after_the_drive_is_calibrated_and_replays_through_it():
-    """The drive's calibration reads the sensor's normal from the scene without starting Taichi, so the
-    calibration's secant probe still forks (diagnose's signature stage and ``thinshell sysid`` calibrate the drive
-    first): until session 53 the normal was read from a started simulation, and every diagnosis through a drive
-    made its probe in one process. The forked replay goes through the drive, bit for bit the one made here."""
-    from tests.sysid.conftest import reference_bag
-
-    proc = subprocess.run([sys.executable, "-c", THROUGH_DRIVE, str(reference_bag("nominal_s101"))], cwd=REPO,
-                          capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    assert "same replay through the drive" in proc.stdout
-
-
 def test_sysid_command_makes_the_probe_beside_unless_asked_for_one_process():
     from sysid.cli import build_parser, fit_options
     from sysid.fit_recording import FitOptions
@@ -169,10 +113,15 @@ made_here = []
 simulate = observation.ObservationModel.simulate
 observation.ObservationModel.simulate = lambda self, *a, **k: made_here.append(1) or simulate(self, *a, **k)
 common = dict(t_max=0.8, simulation={"gel_resolution": [4, 3, 2]})
-beside = without_replays(prepare(sys.argv[1], SignatureSettings(probe_worker=True, **common)))
-assert beside.calibration.drive.compliant and beside.calibration.secant.accepted
-# here: the start replay and the secant step; the probe and the kinematic reference in the probe process
+prepared = prepare(sys.argv[1], SignatureSettings(probe_worker=True, **common))
+assert prepared.calibration.drive.compliant and prepared.calibration.secant.accepted
+# the drive's calibration started no Taichi here, so the probe process forked: here the start replay and the secant
+# step; the probe and the kinematic reference there
 assert len(made_here) == 2, len(made_here)
+# after the kinematic reference the probe process replays through the drive again (the refits' later replays)
+worker = prepared.replays
+assert worker.submit(prepared.calibration.params, prepared.calibration.params) and worker.collect().drive is not None
+beside = without_replays(prepared)
 made_here.clear()
 alone = prepare(sys.argv[1], SignatureSettings(probe_worker=False, **common))
 assert len(made_here) == 4, len(made_here)
@@ -186,8 +135,11 @@ print("the same calibrated replay and kinematic reference")
 
 
 def test_diagnosis_makes_its_kinematic_reference_beside_the_secant_step_with_the_same_result():
-    """``signature_engine.prepare`` with the probe process: the kinematic reference (the recorded pose imposed, at
-    the calibrated values) is replayed there beside the calibration's secant step, and the prepared recording is
+    """``signature_engine.prepare`` with the probe process, through the drive: the drive's calibration reads the
+    sensor's normal without starting Taichi, so the calibration's secant probe still forks (until session 53 the
+    normal was read from a started simulation, and every diagnosis through a drive made its probe in one process);
+    the kinematic reference (the recorded pose imposed, at the calibrated values) is replayed there beside the
+    calibration's secant step, after which that process replays through the drive again; the prepared recording is
     bit for bit the one-process one (nominal_s101's first 0.8 s, coarse gel; the step is accepted there)."""
     from tests.sysid.conftest import reference_bag
 
