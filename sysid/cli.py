@@ -130,6 +130,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="width of the fit's first trust region in every parameter's search coordinate (log units for "
                         "a positive parameter: 0.5 is a factor 1.65; default: %(default)s; 0: least_squares' own, a "
                         "factor 13.8 within the default bounds)")
+    p.add_argument("--one-process", action="store_true",
+                   help="make the calibration's replays one after the other in this process (default: its secant probe "
+                        "runs in a second process beside its start replay, as in thinshell diagnose; the same replays "
+                        "and values)")
     p.add_argument("--hold-unidentified", action=argparse.BooleanOptionalAction, default=True,
                    help="hold a parameter whose robust 2-sigma interval reaches zero (at the start, or at any accepted "
                         "point) at its start value: no step along a direction the data do not determine; it is "
@@ -269,7 +273,8 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,
                       robust=None if args.robust == "none" else args.robust, drive=args.drive,
                       tack=args.tack, hold_unidentified=args.hold_unidentified,
-                      first_step=args.first_step or None, fit_eps_v=args.fit_eps_v)
+                      first_step=args.first_step or None, fit_eps_v=args.fit_eps_v,
+                      probe_worker=not args.one_process)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:

@@ -23,7 +23,9 @@ from typing import Callable, Sequence
 
 from sim_core.errors import ConfigError
 from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
+from sysid.calibration_secant import SECANT_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
+from sysid.diagnose.probe_worker import calibration_probe
 from sysid.drive_calibration import fit_drive
 from sysid.evidence import load_evidence
 from sysid.gain_profile import GainProfile
@@ -115,10 +117,13 @@ class FitOptions:
             difference, one plain replay per Jacobian,
             :data:`sysid.jacobians.DIFFERENCE_STEPS`), so that the fit's own cost decides it jointly with the materials.
             False: held at the calibration's value, which a 2-replay secant found at the start's materials and so
-            carries the start into the answer (session 52: 1.7 / 2.4 / 3.1 mm/s on nominal_s101 from starts 0.7 / 1.0 /
-            1.3 x the scene's materials; on this simulator's concealed-arm press-slide from 1.3 x, 14.7 mm/s against
-            the recording's 10 and the gel modulus 0.835 x the truth, 0.949 x with it fitted; docs/benchmarks_log.md,
-            session 53, 49start).
+            carries the start into the answer (1.7 / 2.4 / 3.1 mm/s on nominal_s101 from starts 0.7 / 1.0 / 1.3 x the
+            scene's materials; on this simulator's concealed-arm press-slide from 1.3 x, 14.7 mm/s against the
+            recording's 10 and the gel modulus 0.835 x the truth, 0.949 x with it fitted; docs/benchmarks_log.md).
+        probe_worker: make the calibration's secant probe in a second process beside its start replay, as
+            ``thinshell diagnose`` does (:func:`sysid.diagnose.probe_worker.calibration_probe`: the same replays
+            and values, one replay less wall time on two cores; where it applies); False (``thinshell sysid
+            --one-process``): every replay in this process.
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -159,6 +164,7 @@ class FitOptions:
     hold_unidentified: bool = True
     first_step: float | None = FIRST_STEP
     fit_eps_v: bool = True
+    probe_worker: bool = True
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -283,21 +289,32 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                                  simulation=simulation, arch=options.arch)
     notes = tuple(str(w.message) for w in caught)
     calibrated = tuple(p for p in options.calibration_params if p not in options.params)
-    for name in (*options.params, *calibrated):  # an unknown name fails here, before the calibration's replay
-        model.parameter_value(name)
     drive = fit_drive(model) if options.drive and model.sensor is not None else None
     if drive is not None:
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     tack = nominal_tack(model) if options.tack and model.sensor is not None else None
     jacobian = options.jacobian
-    if on_model is not None:
-        on_model(model, notes)
     sensor = None
-    if (options.sensor_calibration or calibrated) and model.sensor is not None:  # a task scene may have no sensor
-        sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
-                           max_replays=options.calibration_max_replays, drive=options.drive)
-        if on_calibration is not None:
-            on_calibration(sensor)
+    calibrating = (options.sensor_calibration or calibrated) and model.sensor is not None  # a task scene may have none
+    # the calibration's secant probe forked before this process starts Taichi (reading a parameter does), through
+    # the drive, to replay beside the calibration's start replay
+    worker = None if not (calibrating and options.probe_worker) else calibration_probe(
+        model, calibrated, secant_replays=SECANT_REPLAYS, max_replays=options.calibration_max_replays,
+        max_time=options.calibration_max_time)
+    try:
+        for name in (*options.params, *calibrated):  # an unknown name fails here, before the calibration's replay
+            model.parameter_value(name)
+        if on_model is not None:
+            on_model(model, notes)
+        if calibrating:
+            sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
+                               max_replays=options.calibration_max_replays, drive=options.drive,
+                               secant_first=None if worker is None else worker.result)
+    finally:
+        if worker is not None:
+            worker.close()
+    if sensor is not None and on_calibration is not None:
+        on_calibration(sensor)
     if sensor is not None and options.profile_gains:
         model.gain_profile = GainProfile(model, sensor.gain_prior)
     # the calibration's secant values fitted with the materials, from where the calibration left them, where it took
