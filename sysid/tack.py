@@ -183,7 +183,8 @@ def nominal_tack(model, params: dict[str, float] | None = None, shear_layer: boo
     why = (f"the recording shows the card carried by the gel in {int(rows.sum())} rows: bonds of "
            f"{ADHESION_PROBE_WEIGHTS:g} card weights a pair, released at the recorded peel {tack['peel_s']:.3f} s "
            f"(sheet points whitened RMS up to the peel {without:.3g} -> {with_tack:.3g})")
-    layer = fit_shear_layer(model, {**dict(params or {}), **values}, beta, data, sigma, held) if shear_layer else None
+    carried = t_sheet < tack["peel_s"]  # the peel's own row out: the replay lets go within a step of the recording
+    layer = fit_shear_layer(model, {**dict(params or {}), **values}, beta, data, sigma, carried) if shear_layer else None
     if layer is not None and layer.rms < with_tack:
         values = {**values, ADHESION_PARAMETER: layer.beta, SHEAR_STIFFNESS_SETTING: layer.stiffness}
         why += (f"; a compliant layer that holds the card in shear, k_t {layer.stiffness:.3g} N/m a pair fitted from "
