@@ -23,11 +23,17 @@ the nominal model the tack wherever the recording shows the card carried:
    replays. The bonds' strength is not fitted: above the card's weight the card follows the gel whatever
    the strength (:func:`sysid.diagnose.candidates.adhesion_weight_scale`).
 
+3. the tack's compliant shear layer (:func:`fit_shear_layer`; ``nominal_tack(shear_layer=False)`` leaves it out):
+   normal-only bonds let the card slide along the gel, where a real gel's adhesive layer holds it in shear with a
+   finite stiffness. With the materials held at the start, the layer's ``k_t`` (N/m per bonded pair, bonds of
+   :data:`LAYER_BOND_WEIGHTS` card weights held to the recorded peel) is searched in log on the sheet points
+   before the peel (at most :data:`SHEAR_MAX_REPLAYS` replays), and kept where it follows the carried card better
+   than the normal-only bonds.
+
 Every later replay (calibration and fit) takes the tack (:meth:`sysid.observation.ObservationModel.set_nominal`).
-With it nominal_s109 at the engine's values reads 32 (own MuJoCo world's lift-fold nominal_s301: 43 -> 13); what
-is left is the fold, where these normal-only bonds let the card slide along the gel while the recorded card
-arches on bonds that hold it in shear (the anchored shear bonds of :mod:`sim_core.candidates.adhesion`, rigid, read
-41 and 58: the reference world's bonds are 8.3 N/m springs that lag the gel by 5-12 mm).
+nominal_s109 at the engine's values, sheet points' whitened RMS over the recording: no tack 81.9, normal-only bonds
+32.1, the compliant layer (k_t 2.64 N/m a pair, fitted) 7.59, markers 2.56 -> 1.44 (docs/benchmarks_log.md,
+session 53). The rigid shear bonds of the coupled law (``adhesion.shear``) read 41: the fold needs the compliance.
 """
 
 from __future__ import annotations
