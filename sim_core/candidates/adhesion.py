@@ -241,7 +241,8 @@ class LaggedAdhesion:
             both ``delta_t`` and ``k_shear``, bad shapes.
     """
 
-    parameter_names: tuple[str, ...] = ("beta", "k_shear")
+    parameter_names: tuple[str, ...] = ("beta",)
+    """``("beta",)``, and ``"k_shear"`` on bonds with the compliant layer."""
 
     def __init__(self, vertices: np.ndarray, weights: np.ndarray, normal: np.ndarray, eps: float,
                  beta: float, delta: float, delta_t: float | None = None, k_shear: float | None = None) -> None:
@@ -265,6 +266,8 @@ class LaggedAdhesion:
         self.eps, self.beta, self.delta = eps, beta, delta
         self.delta_t = None if delta_t is None else float(delta_t)
         self.k_shear = None if k_shear is None else float(k_shear)
+        if self.k_shear is not None:
+            self.parameter_names = ("beta", "k_shear")
 
     def _d(self, x: np.ndarray) -> np.ndarray:
         """``d = sum_j w_j x_j`` (gel vertex minus sheet point) per pair in m, shape ``(p, 3)``."""
@@ -357,10 +360,10 @@ class LaggedAdhesion:
         (the shear openings ``P d`` scattered), shape ``(n, 3)``.
 
         Raises:
-            KeyError: ``name`` is neither (or ``"k_shear"`` of bonds without the compliant layer).
+            KeyError: ``name`` not in :attr:`parameter_names`.
         """
         if name == "beta":
             return self._gradient_with(x, 1.0)
-        if name == "k_shear" and self.k_shear is not None:
+        if name == "k_shear" and name in self.parameter_names:
             return scatter_gradient(x.shape[0], self.vertices, self.weights[:, :, None] * self._shear_opening(x)[:, None, :])
         raise KeyError(f"LaggedAdhesion has no parameter {name!r}; known: {self.parameter_names}")
