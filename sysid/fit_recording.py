@@ -33,7 +33,7 @@ from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.observation import ObservationModel
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
-from sysid.tack import nominal_tack
+from sysid.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
 
 
 @dataclass(frozen=True)
@@ -271,11 +271,17 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     notes = tuple(str(w.message) for w in caught)
     calibrated = tuple(p for p in options.calibration_params if p not in options.params)
     for name in (*options.params, *calibrated):  # an unknown name fails here, before the calibration's replay
-        model.parameter_value(name)
+        if name != SHEAR_STIFFNESS_SETTING:  # the tack's decision sets it, below
+            model.parameter_value(name)
     drive = fit_drive(model) if options.drive and model.sensor is not None else None
     if drive is not None:
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     tack = nominal_tack(model) if options.tack and model.sensor is not None else None
+    layer_on = tack is not None and SHEAR_STIFFNESS_SETTING in (tack.params or {})
+    if SHEAR_STIFFNESS_SETTING in options.params and not layer_on:
+        raise ConfigError(f"{bag}: --params names {SHEAR_STIFFNESS_SETTING}, but the tack's compliant shear layer is not "
+                          f"part of this recording's nominal model (give --tack; the tack's decision: "
+                          f"{'not asked' if tack is None else tack.why})")
     jacobian = options.jacobian
     if on_model is not None:
         on_model(model, notes)
