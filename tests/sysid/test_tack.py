@@ -59,12 +59,22 @@ def test_a_lift_with_a_concealed_tack_gets_it_in_its_nominal_model(lift_bag):
 
 
 def test_a_press_slide_gets_no_tack(tmp_path):
-    """The card is never carried by the gel: no carried row, so no tack and no replay."""
-    model = ObservationModel(load_evidence(make_recording(tmp_path / "bag")), dt=0.01)
+    """The card is never carried by the gel: no carried row, so no tack and no replay; asked to fit the tack's shear
+    layer there, ``thinshell sysid`` stops with an error that names the parameter and why."""
+    from sim_core.errors import ConfigError
+    from sysid.fit_recording import FitOptions, fit_recording
+    from sysid.tack import SHEAR_STIFFNESS_SETTING
+
+    bag = make_recording(tmp_path / "bag")
+    model = ObservationModel(load_evidence(bag), dt=0.01)
     decision = nominal_tack(model)
     assert not decision.on and "never carried" in decision.why
     assert model.parameter_value(ADHESION_PARAMETER) == 0.0
-    assert decision.summary()["bond_strength_N"] is None
+    assert decision.summary()["bond_strength_N"] is None and decision.layer is None
+    options = FitOptions(params=("gel.youngs_modulus", SHEAR_STIFFNESS_SETTING), tack=True, drive=False,
+                         sensor_calibration=False)
+    with pytest.raises(ConfigError, match="shear layer is not part.*never carried"):
+        fit_recording(bag, tmp_path / "out", options)
 
 
 def test_thinshell_sysid_takes_the_tack_on_request():
