@@ -34,6 +34,15 @@ Every later replay (calibration and fit) takes the tack (:meth:`sysid.observatio
 nominal_s109 at the engine's values, sheet points' whitened RMS over the recording: no tack 81.9, normal-only bonds
 32.1, the compliant layer (k_t 2.64 N/m a pair, fitted) 7.59, markers 2.56 -> 1.44 (docs/benchmarks_log.md,
 session 53). The rigid shear bonds of the coupled law (``adhesion.shear``) read 41: the fold needs the compliance.
+``thinshell sysid --tack --params ...,candidate.adhesion.shear_stiffness`` fits ``k_t`` jointly with the materials
+(its Jacobian column a forward difference, :data:`sysid.jacobians.DIFFERENCE_PARAMETERS`).
+
+Still opt-in (``thinshell sysid --tack``), measured in session 53: with the layer the calibrated markers and pixels
+of both lifts fall below 3 and s109's bending stiffness from the scene is identified (-3.5 %), but from +-30 %
+starts the materials do not come back (s109 -30 %: modulus -64 %, friction -50 %), and from the scene the friction
+lands at -27 %: ``k_t`` follows the start's materials (1.98 / 2.64 / 3.41 N/m a pair), and the reference records
+the bonds' force with the card's sign, so the calibration asks a force gain of 0.29-0.59 once a physical tack
+carries the card.
 """
 
 from __future__ import annotations
