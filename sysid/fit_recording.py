@@ -279,8 +279,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     tack = nominal_tack(model) if options.tack and model.sensor is not None else None
     layer_on = tack is not None and SHEAR_STIFFNESS_SETTING in (tack.params or {})
     if SHEAR_STIFFNESS_SETTING in options.params and not layer_on:
-        raise ConfigError(f"{bag}: --params names {SHEAR_STIFFNESS_SETTING}, but the tack's compliant shear layer is not "
-                          f"part of this recording's nominal model (give --tack; the tack's decision: "
+        raise ConfigError(f"{bag}: --params names {SHEAR_STIFFNESS_SETTING}, but the tack's compliant shear layer "
+                          f"is not part of this recording's nominal model (give --tack; the tack's decision: "
                           f"{'not asked' if tack is None else tack.why})")
     jacobian = options.jacobian
     if on_model is not None:

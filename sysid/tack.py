@@ -61,7 +61,8 @@ from sysid.evidence import resample_pose
 from sim_core.transforms import quat_to_matrix
 
 SHEAR_STIFFNESS_SETTING = "candidate.adhesion.shear_stiffness"
-"""The tack's compliant layer: tangential stiffness ``k_t``, N/m per bonded pair (:mod:`sim_core.candidates.adhesion`)."""
+"""The tack's compliant layer: tangential stiffness ``k_t``, N/m per bonded pair
+(:mod:`sim_core.candidates.adhesion`)."""
 
 LAYER_BOND_WEIGHTS = 400.0
 """Bond strength of the compliant layer's bonds, in card weights a pair: strong enough never to break before the
@@ -199,13 +200,15 @@ def nominal_tack(model, params: dict[str, float] | None = None, shear_layer: boo
            f"{ADHESION_PROBE_WEIGHTS:g} card weights a pair, released at the recorded peel {tack['peel_s']:.3f} s "
            f"(sheet points whitened RMS up to the peel {without:.3g} -> {with_tack:.3g})")
     carried = t_sheet < tack["peel_s"]  # the peel's own row out: the replay lets go within a step of the recording
-    layer = fit_shear_layer(model, {**dict(params or {}), **values}, beta, data, sigma, carried) if shear_layer else None
+    layer = (fit_shear_layer(model, {**dict(params or {}), **values}, beta, data, sigma, carried)
+             if shear_layer else None)
     if layer is not None and layer.rms < with_tack:
         values = {**values, ADHESION_PARAMETER: layer.beta, SHEAR_STIFFNESS_SETTING: layer.stiffness}
         why += (f"; a compliant layer that holds the card in shear, k_t {layer.stiffness:.3g} N/m a pair fitted from "
                 f"the carried card (bonds of {LAYER_BOND_WEIGHTS:g} card weights, held to the peel): {layer.rms:.3g}")
     elif layer is not None:
-        why += f"; the compliant shear layer followed it no better ({layer.rms:.3g} at its best, k_t {layer.stiffness:.3g})"
+        why += (f"; the compliant shear layer followed it no better ({layer.rms:.3g} at its best, "
+                f"k_t {layer.stiffness:.3g})")
     for name, value in values.items():  # known to the simulator before the nominal takes them
         sim.set_parameter(name, value)
     model.set_nominal(values)

@@ -256,9 +256,11 @@ class LaggedAdhesion:
         if delta_t is not None and not (np.isfinite(delta_t) and delta_t > 0):
             raise ConfigError(f"LaggedAdhesion: delta_t (tangential length) must be > 0 m, got {delta_t}")
         if k_shear is not None and not (np.isfinite(k_shear) and k_shear >= 0):
-            raise ConfigError(f"LaggedAdhesion: k_shear (tangential stiffness) must be finite and >= 0 N/m, got {k_shear}")
+            raise ConfigError(f"LaggedAdhesion: k_shear (tangential stiffness) must be finite and >= 0 N/m, "
+                              f"got {k_shear}")
         if k_shear is not None and delta_t is not None:
-            raise ConfigError("LaggedAdhesion: give the coupled law's delta_t or the compliant layer's k_shear, not both")
+            raise ConfigError("LaggedAdhesion: give the coupled law's delta_t or the compliant layer's k_shear, "
+                              "not both")
         self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1, 4)
         p = self.vertices.shape[0]
         self.weights = np.asarray(weights, dtype=float).reshape(p, 4)
@@ -365,5 +367,6 @@ class LaggedAdhesion:
         if name == "beta":
             return self._gradient_with(x, 1.0)
         if name == "k_shear" and name in self.parameter_names:
-            return scatter_gradient(x.shape[0], self.vertices, self.weights[:, :, None] * self._shear_opening(x)[:, None, :])
+            shear = self._shear_opening(x)
+            return scatter_gradient(x.shape[0], self.vertices, self.weights[:, :, None] * shear[:, None, :])
         raise KeyError(f"LaggedAdhesion has no parameter {name!r}; known: {self.parameter_names}")

@@ -21,7 +21,8 @@ CANDIDATE_SETTINGS = {"stiction.slip_scale": 2.0, "gel_viscoelasticity.tau": 0.3
 law (:mod:`sim_core.candidates.adhesion`, shear), the bonds hold the sheet's point in every direction; by
 default a bond pulls along the normal only; ``adhesion.shear_stiffness`` None = no compliant layer: the tangential
 stiffness ``k_t`` (N/m per bonded pair) of anchored bonds that hold in shear with a linear spring beside the normal
-law (:mod:`sim_core.candidates.adhesion`, shear compliance; exclusive with ``adhesion.shear``); ``adhesion.release_time`` None = never: from that simulated time (s) on, every bond is broken and
+law (:mod:`sim_core.candidates.adhesion`, shear compliance; exclusive with ``adhesion.shear``);
+``adhesion.release_time`` None = never: from that simulated time (s) on, every bond is broken and
 none forms, the peel of a gel whose tack is lost;
 :meth:`sim_core.candidates.hook.CandidateHook.setting`)."""
 
