@@ -123,9 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=False,
                    help="where the recording shows the card carried up by the gel (a lift), replay the gel's tack "
                         "(adhesion bonds of four card weights a pair) released at the peel read from the recording, "
-                        "kept where it follows the recorded card better than no tack (sysid.tack; fit.json "
-                        "diagnostics.tack). Default: off (the bonds pull along the gel's normal only, and the "
-                        "fold's residual they leave drives the materials off: docs/benchmarks_log.md, session 52)")
+                        "kept where it follows the recorded card better than no tack, with a compliant shear layer "
+                        "whose stiffness is fitted from the carried card where it follows better still (sysid.tack; "
+                        "fit.json diagnostics.tack). Default: off (docs/benchmarks_log.md, sessions 52-53)")
     p.add_argument("--first-step", type=float, default=FIRST_STEP,
                    help="width of the fit's first trust region in every parameter's search coordinate (log units for "
                         "a positive parameter: 0.5 is a factor 1.65; default: %(default)s; 0: least_squares' own, a "
