@@ -547,7 +547,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
               bounds: Mapping[str, tuple[float, float]] | None = None, sensor_first: bool = False,
               reweight_channels: bool = True, secant_params=SECANT_PARAMETERS,
               secant_replays: int = SECANT_REPLAYS, drive: bool = False,
-              secant_first: Callable[[], FirstReplay | None] | None = None, batched: bool = False,
+              secant_first: Callable[[], FirstReplay | None] | None = None,
+              secant_before: Callable[[Mapping[str, float]], None] | None = None, batched: bool = False,
               batch_size: int | str | None = None, prior: GainPrior | None = None) -> CalibrationResult:
     """Calibrate a replay to its recording: the simulator parameters ``params`` (weighted least
     squares, :func:`sysid.fit.fit`, within bounds around the scene's values) and the sensor
@@ -608,6 +609,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         secant_first: gives the secant stage's first replay made beforehand (in another process beside
             the fit's start replay: :mod:`sysid.diagnose.probe_worker`), taken only where its parameters
             are bitwise the stage's first ones (:func:`sysid.calibration_secant.secant_calibration` ``first``).
+        secant_before: called with the parameters of each of that stage's replays before it is made
+            (:func:`sysid.calibration_secant.secant_calibration` ``before``).
         prior: the sensor gains' prior (None: the sensor's in the packaged sysid config,
             :func:`sysid.gain_prior.load_gain_prior`).
 
@@ -681,7 +684,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
 
         stage_bounds = {**calibration_bounds(model, secant_names), **dict(bounds or {})}
         stage = secant_calibration(model, values, raw, sensor_calibrated, secant_names, stage_bounds, secant_replays,
-                                   first=secant_first)
+                                   first=secant_first, before=secant_before)
         if stage.accepted:
             values.update(stage.values)
             model.set_nominal(values)
@@ -703,7 +706,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
                              time.perf_counter() - t_start, stage, where, drive_fit, prior, flags)
 
 
-def kinematic_reference(model, result: CalibrationResult) -> dict[str, np.ndarray] | None:
+def kinematic_reference(model, result: CalibrationResult, made=None) -> dict[str, np.ndarray] | None:
     """The calibrated replay with the recorded pose imposed (kinematic) where the calibration's replays went
     through the arm drive (``result.drive`` compliant): one more replay at the calibrated values, through
     the calibrated sensor; None where they were kinematic (the prediction is that replay) or nothing was
@@ -713,6 +716,9 @@ def kinematic_reference(model, result: CalibrationResult) -> dict[str, np.ndarra
     Args:
         model: the calibrated :class:`~sysid.observation.ObservationModel` (its sensor calibration set).
         result: its :class:`CalibrationResult`.
+        made: that replay made elsewhere (a :class:`~sysid.observation.SimTrace` of the kinematic replay at
+            ``result.params``, e.g. by :class:`sysid.diagnose.probe_worker.ProbeWorker` beside the calibration's last
+            replay), or None: replayed here.
 
     Returns:
         channel -> calibrated prediction, shaped as ``result.prediction``; or None.
@@ -722,6 +728,8 @@ def kinematic_reference(model, result: CalibrationResult) -> dict[str, np.ndarra
     """
     if result.drive is None or not result.drive.compliant or model.sensor_calibration is None:
         return None
+    if made is not None:
+        return dict(model.sensor_calibration.apply(model.predict_raw(made), model.marker_rest))
     stiffness, damping = model.drive_stiffness, model.drive_damping
     model.set_drive_stiffness(math.inf)
     try:

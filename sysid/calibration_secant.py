@@ -110,7 +110,8 @@ class SecantStage:
 def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.ndarray],
                        calibrated: Callable[[Mapping[str, np.ndarray]], Mapping[str, np.ndarray]],
                        names: Sequence[str], bounds: Mapping[str, tuple[float, float]],
-                       max_replays: int, first: Callable[[], "FirstReplay | None"] | None = None) -> SecantStage:
+                       max_replays: int, first: Callable[[], "FirstReplay | None"] | None = None,
+                       before: Callable[[Mapping[str, float]], None] | None = None) -> SecantStage:
     """Fit the positive parameters ``names`` of ``model`` on secants (module docstring).
 
     Args:
@@ -124,6 +125,9 @@ def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.n
         first: called once, at the stage's first replay: that replay made elsewhere (:class:`FirstReplay`,
             e.g. :meth:`sysid.diagnose.probe_worker.ProbeWorker.result`), taken when its parameters are
             bitwise the stage's first ones; None (or a None result): replayed here.
+        before: called with each replay's parameters (all of them, SI) before the replay is made (or taken from
+            ``first``): a caller may start work that needs them beside it (:func:`sysid.diagnose.signature_engine.prepare`
+            starts the kinematic reference at the step's values in its probe process).
 
     The cost gives every fitted channel one vote: each channel's whitened residual is divided by its
     RMS at the start and by ``sqrt`` of its sample count relative to the mean count. The model's gap,
@@ -171,6 +175,8 @@ def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.n
 
     def residual(u: np.ndarray) -> np.ndarray | None:
         values = {**dict(base), **{n: start[n] * math.exp(float(x)) for n, x in zip(names, u)}}
+        if before is not None:
+            before(values)
         try:
             raw = model.predict_raw(_replay(model, values, shared, kept, first))
         except SimulationDivergedError:

@@ -130,13 +130,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=False,
                    help="where the recording shows the card carried up by the gel (a lift), replay the gel's tack "
                         "(adhesion bonds of four card weights a pair) released at the peel read from the recording, "
-                        "kept where it follows the recorded card better than no tack (sysid.tack; fit.json "
-                        "diagnostics.tack). Default: off (the bonds pull along the gel's normal only, and the "
-                        "fold's residual they leave drives the materials off: docs/benchmarks_log.md, session 52)")
+                        "kept where it follows the recorded card better than no tack, with a compliant shear layer "
+                        "whose stiffness is fitted from the carried card where it follows better still (sysid.tack; "
+                        "fit.json diagnostics.tack). Default: off (docs/benchmarks_log.md, sessions 52-53)")
     p.add_argument("--first-step", type=float, default=FIRST_STEP,
                    help="width of the fit's first trust region in every parameter's search coordinate (log units for "
                         "a positive parameter: 0.5 is a factor 1.65; default: %(default)s; 0: least_squares' own, a "
                         "factor 13.8 within the default bounds)")
+    p.add_argument("--one-process", action="store_true",
+                   help="make the calibration's replays one after the other in this process (default: its secant probe "
+                        "runs in a second process beside its start replay, as in thinshell diagnose; the same replays "
+                        "and values)")
     p.add_argument("--hold-unidentified", action=argparse.BooleanOptionalAction, default=True,
                    help="hold a parameter whose robust 2-sigma interval reaches zero (at the start, or at any accepted "
                         "point) at its start value: no step along a direction the data do not determine; it is "
@@ -277,7 +281,8 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,
                       robust=None if args.robust == "none" else args.robust, drive=args.drive,
                       tack=args.tack, hold_unidentified=args.hold_unidentified,
-                      first_step=args.first_step or None, fit_eps_v=args.fit_eps_v)
+                      first_step=args.first_step or None, fit_eps_v=args.fit_eps_v,
+                      probe_worker=not args.one_process)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:

@@ -25,7 +25,9 @@ from sim_core.elastic import SOLID_ELEMENTS
 from sim_core.errors import ConfigError
 from sim_core.scenes.tactile_scene import SIMULATION_KEYS
 from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
+from sysid.calibration_secant import SECANT_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
+from sysid.diagnose.probe_worker import calibration_probe
 from sysid.drive_calibration import fit_drive
 from sysid.evidence import load_evidence
 from sysid.gain_profile import GainProfile
@@ -36,7 +38,7 @@ from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.observation import ObservationModel
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
-from sysid.tack import nominal_tack
+from sysid.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
 
 
 @dataclass(frozen=True)
@@ -101,15 +103,13 @@ class FitOptions:
             step: on nominal_s101 up to 93 % off the tangent, and the fit did not finish in 560 s;
             docs/benchmarks_log.md, session 51, 49sysdrive.)
         tack: where the recording shows the card carried by the gel (a lift), make the gel's tack part of the
-            nominal model, released at the recorded peel (:func:`sysid.tack.nominal_tack`); fit.json
-            ``diagnostics.tack`` says what was decided and why. False (the default): no tack, a lift's card stays on
-            the table in every replay (nominal_s109's sheet points at whitened RMS 82 at the engine's values, 32
-            with the tack). Not the default because the tack's bonds hold the card along the gel's normal only:
-            in the fold the replay's card slides along the gel where the recorded one arches and the recorded gel
-            is sheared by the bonds' pull, and that structured residual, now sensitive to the materials, drives
-            them far off (nominal_s109 from the scene: bending x110, gel modulus +18 %, friction +11 %, each
-            NOT IDENTIFIED; weighing the channels by their gap sends the friction to 9.3; without the tack the fit
-            stays at its start; docs/benchmarks_log.md, session 52).
+            nominal model, released at the recorded peel, with its compliant shear layer fitted from the carried card
+            where it follows better (:func:`sysid.tack.nominal_tack`); fit.json ``diagnostics.tack`` says what was
+            decided and why. False (the default): no tack, a lift's card stays on the table in every replay
+            (nominal_s109's sheet points at whitened RMS 82 at the engine's values; 32 with normal-only bonds, 7.6
+            with the compliant layer). Session 52: the normal-only bonds' fold residual drove the materials far off
+            (bending x110). Session 53, with the layer: see :mod:`sysid.tack` and docs/benchmarks_log.md for why it
+            is still not the default.
         hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely
@@ -123,10 +123,13 @@ class FitOptions:
             difference, one plain replay per Jacobian,
             :data:`sysid.jacobians.DIFFERENCE_STEPS`), so that the fit's own cost decides it jointly with the materials.
             False: held at the calibration's value, which a 2-replay secant found at the start's materials and so
-            carries the start into the answer (session 52: 1.7 / 2.4 / 3.1 mm/s on nominal_s101 from starts 0.7 / 1.0 /
-            1.3 x the scene's materials; on this simulator's concealed-arm press-slide from 1.3 x, 14.7 mm/s against
-            the recording's 10 and the gel modulus 0.835 x the truth, 0.949 x with it fitted; docs/benchmarks_log.md,
-            session 53, 49start).
+            carries the start into the answer (1.7 / 2.4 / 3.1 mm/s on nominal_s101 from starts 0.7 / 1.0 / 1.3 x the
+            scene's materials; on this simulator's concealed-arm press-slide from 1.3 x, 14.7 mm/s against the
+            recording's 10 and the gel modulus 0.835 x the truth, 0.949 x with it fitted; docs/benchmarks_log.md).
+        probe_worker: make the calibration's secant probe in a second process beside its start replay, as
+            ``thinshell diagnose`` does (:func:`sysid.diagnose.probe_worker.calibration_probe`: the same replays
+            and values, one replay less wall time on two cores; where it applies); False (``thinshell sysid
+            --one-process``): every replay in this process.
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -168,6 +171,7 @@ class FitOptions:
     hold_unidentified: bool = True
     first_step: float | None = FIRST_STEP
     fit_eps_v: bool = True
+    probe_worker: bool = True
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -299,21 +303,38 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                                  simulation=simulation or None, arch=options.arch)
     notes = tuple(str(w.message) for w in caught)
     calibrated = tuple(p for p in options.calibration_params if p not in options.params)
-    for name in (*options.params, *calibrated):  # an unknown name fails here, before the calibration's replay
-        model.parameter_value(name)
     drive = fit_drive(model) if options.drive and model.sensor is not None else None
     if drive is not None:
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     tack = nominal_tack(model) if options.tack and model.sensor is not None else None
+    layer_on = tack is not None and SHEAR_STIFFNESS_SETTING in (tack.params or {})
+    if SHEAR_STIFFNESS_SETTING in options.params and not layer_on:
+        raise ConfigError(f"{bag}: --params names {SHEAR_STIFFNESS_SETTING}, but the tack's compliant shear layer "
+                          f"is not part of this recording's nominal model (give --tack; the tack's decision: "
+                          f"{'not asked' if tack is None else tack.why})")
     jacobian = options.jacobian
-    if on_model is not None:
-        on_model(model, notes)
     sensor = None
-    if (options.sensor_calibration or calibrated) and model.sensor is not None:  # a task scene may have no sensor
-        sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
-                           max_replays=options.calibration_max_replays, drive=options.drive)
-        if on_calibration is not None:
-            on_calibration(sensor)
+    calibrating = (options.sensor_calibration or calibrated) and model.sensor is not None  # a task scene may have none
+    # the calibration's secant probe forked before this process starts Taichi (reading a parameter does), through
+    # the drive, to replay beside the calibration's start replay
+    worker = None if not (calibrating and options.probe_worker) else calibration_probe(
+        model, calibrated, secant_replays=SECANT_REPLAYS, max_replays=options.calibration_max_replays,
+        max_time=options.calibration_max_time)
+    try:
+        for name in (*options.params, *calibrated):  # an unknown name fails here, before the calibration's replay
+            if name != SHEAR_STIFFNESS_SETTING:  # the tack's decision above sets it where the layer is on
+                model.parameter_value(name)
+        if on_model is not None:
+            on_model(model, notes)
+        if calibrating:
+            sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
+                               max_replays=options.calibration_max_replays, drive=options.drive,
+                               secant_first=None if worker is None else worker.result)
+    finally:
+        if worker is not None:
+            worker.close()
+    if sensor is not None and on_calibration is not None:
+        on_calibration(sensor)
     if sensor is not None and options.profile_gains:
         model.gain_profile = GainProfile(model, sensor.gain_prior)
     # the calibration's secant values fitted with the materials, from where the calibration left them, where it took

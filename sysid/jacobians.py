@@ -21,12 +21,12 @@ from sysid.replay_drive import drive_sensitivities
 
 JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
 
-DIFFERENCE_PARAMETERS = (*SENSOR_PARAMETERS, "contact.eps_v")
+DIFFERENCE_PARAMETERS = (*SENSOR_PARAMETERS, "contact.eps_v", "candidate.adhesion.shear_stiffness")
 """Parameters whose Jacobian columns the sensitivity provider takes by forward differences: the
-replay's sensor offset (not a simulator parameter) and the friction mollifier width (no adjoint
-derivative)."""
+replay's sensor offset (not a simulator parameter), the friction mollifier width and the tack's shear layer
+(:data:`sysid.tack.SHEAR_STIFFNESS_SETTING`; no adjoint derivative)."""
 
-DIFFERENCE_STEPS = {"sensor.normal_offset": 0.1, "contact.eps_v": 0.1}
+DIFFERENCE_STEPS = {"sensor.normal_offset": 0.1, "contact.eps_v": 0.1, "candidate.adhesion.shear_stiffness": 0.1}
 """Forward-difference step (search coordinates) of each difference parameter, when larger than the
 provider's ``fd_step``: 5 um of sensor offset, 10 % of the stick regularisation. A replay's cost is
 rough at the 0.3 % level under small changes of these two (the lagged friction's stick/slip state and

@@ -205,6 +205,7 @@ class ObservationModel:
         self.sigma = self._noise_levels(noise)
         self._build_replay()
         self._sim = None
+        self._sensor_mount: np.ndarray | None = None
         self.warm_start: np.ndarray | None = None
         self.batch_sizing = None
         self.normal_offset = 0.0
@@ -522,7 +523,13 @@ class ObservationModel:
 
     def sensor_normal(self, pose: np.ndarray) -> np.ndarray:
         """World direction ``(3,)`` of the sensor's +z (out of the gel) at effector pose ``pose``."""
-        mount = self.simulation().model.sensors[self.sensor].mount
+        if self._sensor_mount is None:
+            # read from the scene's model without a simulation, which would start Taichi: a process may still fork
+            # replay workers after the drive's calibration asks for the normal (sysid.diagnose.probe_worker)
+            model = self._sim.model if self._sim is not None else (
+                build_task_scene(self.scene, self._base_dir) if self.task else load_scene(self.scene))
+            self._sensor_mount = np.asarray(model.sensors[self.sensor].mount, dtype=float)
+        mount = self._sensor_mount
         return quat_to_matrix(pose[3:7]) @ quat_to_matrix(mount[3:7]) @ np.array([0.0, 0.0, 1.0])
 
     def _checked_guess(self, guess: np.ndarray | None) -> np.ndarray | None:

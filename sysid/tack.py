@@ -23,11 +23,26 @@ the nominal model the tack wherever the recording shows the card carried:
    replays. The bonds' strength is not fitted: above the card's weight the card follows the gel whatever
    the strength (:func:`sysid.diagnose.candidates.adhesion_weight_scale`).
 
+3. the tack's compliant shear layer (:func:`fit_shear_layer`; ``nominal_tack(shear_layer=False)`` leaves it out):
+   normal-only bonds let the card slide along the gel, where a real gel's adhesive layer holds it in shear with a
+   finite stiffness. With the materials held at the start, the layer's ``k_t`` (N/m per bonded pair, bonds of
+   :data:`LAYER_BOND_WEIGHTS` card weights held to the recorded peel) is searched in log on the sheet points
+   before the peel (at most :data:`SHEAR_MAX_REPLAYS` replays), and kept where it follows the carried card better
+   than the normal-only bonds.
+
 Every later replay (calibration and fit) takes the tack (:meth:`sysid.observation.ObservationModel.set_nominal`).
-With it nominal_s109 at the engine's values reads 32 (own MuJoCo world's lift-fold nominal_s301: 43 -> 13); what
-is left is the fold, where these normal-only bonds let the card slide along the gel while the recorded card
-arches on bonds that hold it in shear (the anchored shear bonds of :mod:`sim_core.candidates.adhesion`, rigid, read
-41 and 58: the reference world's bonds are 8.3 N/m springs that lag the gel by 5-12 mm).
+nominal_s109 at the engine's values, sheet points' whitened RMS over the recording: no tack 81.9, normal-only bonds
+32.1, the compliant layer (k_t 2.64 N/m a pair, fitted) 7.59, markers 2.56 -> 1.44 (docs/benchmarks_log.md,
+session 53). The rigid shear bonds of the coupled law (``adhesion.shear``) read 41: the fold needs the compliance.
+``thinshell sysid --tack --params ...,candidate.adhesion.shear_stiffness`` fits ``k_t`` jointly with the materials
+(its Jacobian column a forward difference, :data:`sysid.jacobians.DIFFERENCE_PARAMETERS`).
+
+Still opt-in (``thinshell sysid --tack``), measured in session 53: with the layer the calibrated markers and pixels
+of both lifts fall below 3 and s109's bending stiffness from the scene is identified (-3.5 %), but from +-30 %
+starts the materials do not come back (s109 -30 %: modulus -64 %, friction -50 %), and from the scene the friction
+lands at -27 %: ``k_t`` follows the start's materials (1.98 / 2.64 / 3.41 N/m a pair), and the reference records
+the bonds' force with the card's sign, so the calibration asks a force gain of 0.29-0.59 once a physical tack
+carries the card.
 """
 
 from __future__ import annotations
@@ -39,10 +54,32 @@ from typing import Any
 import numpy as np
 
 from sim_core.candidates.hook import CandidateHook
+from sim_core.errors import SimulationDivergedError
 from sysid.diagnose.candidates import ADHESION_PROBE_WEIGHTS, adhesion_weight_scale
 from sysid.diagnose.peel import ADHESION_PARAMETER, RELEASE_TIME_SETTING, face_gap, points_under, tack_with_peel
 from sysid.evidence import resample_pose
 from sim_core.transforms import quat_to_matrix
+
+SHEAR_STIFFNESS_SETTING = "candidate.adhesion.shear_stiffness"
+"""The tack's compliant layer: tangential stiffness ``k_t``, N/m per bonded pair
+(:mod:`sim_core.candidates.adhesion`)."""
+
+LAYER_BOND_WEIGHTS = 400.0
+"""Bond strength of the compliant layer's bonds, in card weights a pair: strong enough never to break before the
+recorded peel (the recording says when the card leaves the gel; with the diagnosis' 4 card weights the layer's shear
+pull opens the bonds as the card pivots and drops it: nominal_s109, docs/benchmarks_log.md, session 53)."""
+
+SHEAR_STIFFNESS_BOUNDS = (0.03, 30.0)
+"""Search range of ``k_t``, N/m per pair (the layer's shear stiffness at the default gel mesh)."""
+
+SHEAR_GRID = 4
+"""Log-spaced grid points of the ``k_t`` search (a factor 10 apart over the bounds)."""
+
+SHEAR_LOG_TOL = 0.1
+"""Brent's tolerance on ``ln k_t`` (10 %)."""
+
+SHEAR_MAX_REPLAYS = 10
+"""Most replays of the ``k_t`` search."""
 
 
 @dataclass(frozen=True)
@@ -56,6 +93,7 @@ class TackDecision:
         beta: bond strength per pair, N (nan when off).
         peel_s: the recorded peel, s from the recording's start (nan when off).
         params: the simulator parameters of the tack (empty when off).
+        layer: the compliant shear layer's fit (None: not fitted).
     """
 
     on: bool
@@ -64,12 +102,15 @@ class TackDecision:
     beta: float = math.nan
     peel_s: float = math.nan
     params: dict[str, float] | None = None
+    layer: "ShearLayer | None" = None
 
     def summary(self) -> dict[str, Any]:
         """fit.json's ``diagnostics.tack``."""
         return {"on": self.on, "why": self.why, "carried_rows": self.carried_rows,
                 "bond_strength_N": None if math.isnan(self.beta) else self.beta,
-                "peel_s": None if math.isnan(self.peel_s) else self.peel_s}
+                "peel_s": None if math.isnan(self.peel_s) else self.peel_s,
+                "shear_layer": None if self.layer is None else self.layer.summary(),
+                "shear_layer_on": bool(self.params and SHEAR_STIFFNESS_SETTING in self.params)}
 
 
 def _face_corners(model) -> np.ndarray:
@@ -111,12 +152,14 @@ def carried_rows(model, opening: float) -> np.ndarray:
     return out
 
 
-def nominal_tack(model, params: dict[str, float] | None = None) -> TackDecision:
+def nominal_tack(model, params: dict[str, float] | None = None, shear_layer: bool = True) -> TackDecision:
     """Decide the tack of ``model``'s recording and, where on, make it part of the model's nominal.
 
     Args:
         model: the :class:`~sysid.observation.ObservationModel` (its drive already set: the tack's replay takes it).
         params: simulator parameters of the tack's replay (None: the scene's).
+        shear_layer: also fit the tack's compliant shear layer (:func:`fit_shear_layer`) and keep it where it
+            follows the carried card better than the normal-only bonds (False: the normal-only bonds).
 
     Returns:
         the :class:`TackDecision`.
@@ -151,14 +194,121 @@ def nominal_tack(model, params: dict[str, float] | None = None) -> TackDecision:
         return TackDecision(False, f"the card rises with the gel in the recording, but a replay with the tack follows "
                                    f"it no better up to the peel (sheet points whitened RMS {with_tack:.3g} against "
                                    f"{without:.3g} without: the card springs back on its own)", int(rows.sum()))
-    values = {ADHESION_PARAMETER: float(beta), RELEASE_TIME_SETTING: float(tack["params"][RELEASE_TIME_SETTING])}
+    release = float(tack["params"][RELEASE_TIME_SETTING])
+    values = {ADHESION_PARAMETER: float(beta), RELEASE_TIME_SETTING: release}
+    why = (f"the recording shows the card carried by the gel in {int(rows.sum())} rows: bonds of "
+           f"{ADHESION_PROBE_WEIGHTS:g} card weights a pair, released at the recorded peel {tack['peel_s']:.3f} s "
+           f"(sheet points whitened RMS up to the peel {without:.3g} -> {with_tack:.3g})")
+    carried = t_sheet < tack["peel_s"]  # the peel's own row out: the replay lets go within a step of the recording
+    layer = (fit_shear_layer(model, {**dict(params or {}), **values}, beta, data, sigma, carried)
+             if shear_layer else None)
+    if layer is not None and layer.rms < with_tack:
+        values = {**values, ADHESION_PARAMETER: layer.beta, SHEAR_STIFFNESS_SETTING: layer.stiffness}
+        why += (f"; a compliant layer that holds the card in shear, k_t {layer.stiffness:.3g} N/m a pair fitted from "
+                f"the carried card (bonds of {LAYER_BOND_WEIGHTS:g} card weights, held to the peel): {layer.rms:.3g}")
+    elif layer is not None:
+        why += (f"; the compliant shear layer followed it no better ({layer.rms:.3g} at its best, "
+                f"k_t {layer.stiffness:.3g})")
     for name, value in values.items():  # known to the simulator before the nominal takes them
         sim.set_parameter(name, value)
     model.set_nominal(values)
-    return TackDecision(True, f"the recording shows the card carried by the gel in {int(rows.sum())} rows: bonds of "
-                              f"{ADHESION_PROBE_WEIGHTS:g} card weights a pair, released at the recorded peel "
-                              f"{tack['peel_s']:.3f} s (sheet points whitened RMS up to the peel {without:.3g} -> "
-                              f"{with_tack:.3g})", int(rows.sum()), float(beta), float(tack["peel_s"]), values)
+    return TackDecision(True, why, int(rows.sum()), float(values[ADHESION_PARAMETER]), float(tack["peel_s"]), values,
+                        layer)
+
+
+@dataclass(frozen=True)
+class ShearLayer:
+    """The tack's compliant layer fitted from the carried card (:func:`fit_shear_layer`).
+
+    Attributes:
+        stiffness: ``k_t`` at the fit's best, N/m per bonded pair.
+        beta: the layer's bond strength per pair, N (:data:`LAYER_BOND_WEIGHTS` card weights).
+        rms: sheet points' whitened RMS up to the peel at ``stiffness``.
+        profile: ``((k_t, rms), ...)`` every replay of the search, by ``k_t``.
+        log_sigma: 1-sigma of ``ln k_t`` from the curvature of the sheet points' cost at the best (:func:`_log_sigma`;
+            nan when the search ends on a bound).
+    """
+
+    stiffness: float
+    beta: float
+    rms: float
+    profile: tuple[tuple[float, float], ...]
+    log_sigma: float
+
+    def summary(self) -> dict[str, Any]:
+        """fit.json's ``diagnostics.tack.shear_layer``."""
+        return {"shear_stiffness_N_per_m": self.stiffness, "bond_strength_N": self.beta, "sheet_rms_to_peel": self.rms,
+                "log_sigma": None if math.isnan(self.log_sigma) else self.log_sigma,
+                "profile": [list(p) for p in self.profile]}
+
+
+def fit_shear_layer(model, params: dict[str, float], card_beta: float, data: np.ndarray, sigma: np.ndarray,
+                    rows: np.ndarray) -> ShearLayer | None:
+    """The tangential stiffness ``k_t`` of the tack's compliant layer that best follows the carried card.
+
+    The layer (:mod:`sim_core.candidates.adhesion`, shear compliance) holds the bonded card points in shear with
+    ``k_t`` per pair; its bonds are :data:`LAYER_BOND_WEIGHTS` card weights strong, so that they hold the card until
+    the recorded peel as the recording shows (the peel itself comes from the recording). With the materials held
+    at ``params``, ``ln k_t`` is searched over :data:`SHEAR_STIFFNESS_BOUNDS` on the sheet points' whitened RMS over
+    ``rows`` (the carried phase): a grid of :data:`SHEAR_GRID` points, then Brent's bounded search between the best
+    one's neighbours to :data:`SHEAR_LOG_TOL` (at most :data:`SHEAR_MAX_REPLAYS` replays in all); the sigma of
+    ``ln k_t`` from the cost's curvature there (:func:`_log_sigma`).
+
+    Args:
+        model: the :class:`~sysid.observation.ObservationModel` (drive set).
+        params: simulator parameters with the tack and its release time.
+        card_beta: the card-weight bond strength of the tack, N per pair (> 0).
+        data: recorded sheet points ``(n, p, 3)`` m; sigma: their noise, broadcastable; rows: bool ``(n,)``.
+
+    Returns:
+        the :class:`ShearLayer`, or None when every replay diverged.
+    """
+    from scipy.optimize import minimize_scalar
+
+    beta = LAYER_BOND_WEIGHTS / ADHESION_PROBE_WEIGHTS * float(card_beta)
+    seen: dict[float, float] = {}
+
+    def cost(u: float) -> float:
+        k = float(math.exp(u))
+        if k not in seen:
+            try:
+                pred = model.predict(model.simulate({**params, ADHESION_PARAMETER: beta,
+                                                     SHEAR_STIFFNESS_SETTING: k}))["sheet_points"]
+                seen[k] = _sheet_rms(pred, data, sigma, rows)
+            except SimulationDivergedError:
+                seen[k] = math.inf
+        return seen[k]
+
+    lo, hi = (math.log(b) for b in SHEAR_STIFFNESS_BOUNDS)
+    grid = np.linspace(lo, hi, SHEAR_GRID)
+    costs = [cost(float(u)) for u in grid]
+    if not np.isfinite(costs).any():
+        return None
+    i = int(np.argmin(costs))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    minimize_scalar(cost, bounds=(a, b), method="bounded",
+                    options={"xatol": SHEAR_LOG_TOL, "maxiter": SHEAR_MAX_REPLAYS - SHEAR_GRID})
+    profile = tuple(sorted(seen.items()))
+    k_best, rms_best = min(profile, key=lambda kv: kv[1])
+    return ShearLayer(k_best, beta, rms_best, profile, _log_sigma(profile, k_best, int(rows.sum())))
+
+
+def _log_sigma(profile, k_best: float, n: int) -> float:
+    """1-sigma of ``ln k_t`` that holds under model error: the cost ``n (rms / rms_best)^2`` with ``n`` the carried
+    rows (one datum a row: a row's points err together, as the card's shape does) and the residual scaled by its own
+    size at the best (the reduced chi-square set to 1), fitted by a parabola in ``ln k_t`` through the best point
+    and its two nearest neighbours; nan at a bound or a flat / concave parabola."""
+    ks = np.array([k for k, _ in profile])
+    rms_best = dict(profile)[k_best]
+    chi = n * (np.array([r for _, r in profile]) / rms_best) ** 2
+    ok = np.isfinite(chi)
+    ks, chi = ks[ok], chi[ok]
+    j = int(np.flatnonzero(ks == k_best)[0])
+    if j == 0 or j == ks.size - 1:
+        return math.nan
+    near = np.argsort(np.abs(np.log(ks) - math.log(k_best)))[:3]
+    curv = np.polyfit(np.log(ks[near]), chi[near], 2)[0]  # chi = c u^2 + ...: sigma^2 = 1 / c
+    return float(1.0 / math.sqrt(curv)) if curv > 0 else math.nan
 
 
 def _drop_tack(sim_model) -> None:

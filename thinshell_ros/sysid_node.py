@@ -235,7 +235,9 @@ class SysidNode(Node):
                              workers=int(self._param("workers")),
                              arch=str(self._param("arch")),
                              sensor_calibration=bool(self._param("sensor_calibration")),
-                             recording_map=recording_map or None)
+                             recording_map=recording_map or None,
+                             # no fork from a process whose DDS threads hold locks: the calibration in one process
+                             probe_worker=False)
         out = str(self._param("out")).strip()
         scene = str(self._param("write_scene")).strip()
         return FitRequest(Path(bag), Path(out) if out else None, bool(self._param("force")), options,

@@ -51,6 +51,19 @@ whitened RMS 32, 6 mm mean error in the fold's hold). Rigid shear bonds (``delta
 with the gel and arch it too high (41 on nominal_s109, 58 on the own MuJoCo world's nominal_s301, against 32
 and 13 normal-only): the reference world's tack bonds are soft springs that lag the gel by 5-12 mm;
 docs/benchmarks_log.md, session 52.
+
+Shear compliance (:data:`ShearLaw`, ``adhesion.shear_stiffness``): the coupled law ties the bond's shear
+stiffness to its normal strength (a bond soft in shear is weak in shear and lets the card go as it pivots). A
+real gel's adhesive layer is a thin compliant film: it holds the anchored point with a finite tangential
+stiffness however weak the normal bond. With ``k_t`` (N/m per bonded pair) the energy is the normal law above plus
+a linear tangential spring on the anchored bonds,
+
+    E = sum_k beta delta e (1 - (1 + r_k) exp(-r_k)) + k_t t_k^2 / 2,
+
+``t_k = |P_k d_k|`` with the lagged ``P = I - n n^T`` (fixed within the step), so the shear part is exactly
+quadratic in x: gradient ``k_t P d`` and Hessian ``k_t P`` per pair, PSD. The bond breaks at the normal release
+opening or the peel (``adhesion.release_time``), not in shear. ``k_t`` is a parameter of the recording: the fit
+reads it from the carried card (:mod:`sysid.tack`).
 """
 
 from __future__ import annotations
@@ -220,15 +233,19 @@ class LaggedAdhesion:
         beta: bond strength per pair in N (>= 0; 0 = off).
         delta: opening at peak force in m (> 0).
         delta_t: tangential length ``delta_t`` of the coupled law in m (> 0), or None: normal bonds only.
+        k_shear: tangential stiffness ``k_t`` of the compliant layer in N/m per pair (>= 0; module docstring,
+            shear compliance), or None. Exclusive with ``delta_t``.
 
     Raises:
-        ConfigError: negative / non-finite ``beta``, non-positive ``delta``, ``delta_t`` or ``eps``, bad shapes.
+        ConfigError: negative / non-finite ``beta`` or ``k_shear``, non-positive ``delta``, ``delta_t`` or ``eps``,
+            both ``delta_t`` and ``k_shear``, bad shapes.
     """
 
     parameter_names: tuple[str, ...] = ("beta",)
+    """``("beta",)``, and ``"k_shear"`` on bonds with the compliant layer."""
 
     def __init__(self, vertices: np.ndarray, weights: np.ndarray, normal: np.ndarray, eps: float,
-                 beta: float, delta: float, delta_t: float | None = None) -> None:
+                 beta: float, delta: float, delta_t: float | None = None, k_shear: float | None = None) -> None:
         beta, delta, eps = float(beta), float(delta), float(eps)
         if not (np.isfinite(beta) and beta >= 0):
             raise ConfigError(f"LaggedAdhesion: bond strength beta must be finite and >= 0 N, got {beta}")
@@ -238,12 +255,21 @@ class LaggedAdhesion:
             raise ConfigError(f"LaggedAdhesion: contact eps must be > 0 m, got {eps}")
         if delta_t is not None and not (np.isfinite(delta_t) and delta_t > 0):
             raise ConfigError(f"LaggedAdhesion: delta_t (tangential length) must be > 0 m, got {delta_t}")
+        if k_shear is not None and not (np.isfinite(k_shear) and k_shear >= 0):
+            raise ConfigError(f"LaggedAdhesion: k_shear (tangential stiffness) must be finite and >= 0 N/m, "
+                              f"got {k_shear}")
+        if k_shear is not None and delta_t is not None:
+            raise ConfigError("LaggedAdhesion: give the coupled law's delta_t or the compliant layer's k_shear, "
+                              "not both")
         self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1, 4)
         p = self.vertices.shape[0]
         self.weights = np.asarray(weights, dtype=float).reshape(p, 4)
         self.normal = np.asarray(normal, dtype=float).reshape(p, 3)
         self.eps, self.beta, self.delta = eps, beta, delta
         self.delta_t = None if delta_t is None else float(delta_t)
+        self.k_shear = None if k_shear is None else float(k_shear)
+        if self.k_shear is not None:
+            self.parameter_names = ("beta", "k_shear")
 
     def _d(self, x: np.ndarray) -> np.ndarray:
         """``d = sum_j w_j x_j`` (gel vertex minus sheet point) per pair in m, shape ``(p, 3)``."""
@@ -274,20 +300,31 @@ class LaggedAdhesion:
     def energy(self, x: np.ndarray) -> float:
         """Adhesion energy in J (0 when every pair is pressed without shear, negative of the work of separation)."""
         r, _, _, g = self._terms(x)
-        return float(self.beta * self.delta * np.e * np.sum(1.0 - (1.0 + r) * g))
+        out = float(self.beta * self.delta * np.e * np.sum(1.0 - (1.0 + r) * g))
+        if self.k_shear is not None:
+            dt = self._shear_opening(x)
+            out += 0.5 * self.k_shear * float(np.einsum("kd,kd->", dt, dt))
+        return out
 
-    def _gradient_with(self, x: np.ndarray, beta: float) -> np.ndarray:
+    def _shear_opening(self, x: np.ndarray) -> np.ndarray:
+        """``P d`` per pair in m (the lagged normal's projector), shape ``(p, 3)``."""
+        d = self._d(x)
+        return d - np.einsum("kd,kd->k", d, self.normal)[:, None] * self.normal
+
+    def _gradient_with(self, x: np.ndarray, beta: float, k_shear: float | None = None) -> np.ndarray:
         r, dt, _, g = self._terms(x)
         # dE/dd = beta e r g n + beta delta e (1 + r) g 2 P d / delta_t^2
         f = beta * np.e * r * g
         gd = f[:, None] * self.normal
         if self.delta_t is not None:
             gd = gd + (2.0 * beta * self.delta * np.e * (1.0 + r) * g / self.delta_t ** 2)[:, None] * dt
+        if k_shear:
+            gd = gd + k_shear * self._shear_opening(x)
         return scatter_gradient(x.shape[0], self.vertices, self.weights[:, :, None] * gd[:, None, :])
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N (the bond force is its negative), shape ``(n, 3)``."""
-        return self._gradient_with(x, self.beta)
+        return self._gradient_with(x, self.beta, self.k_shear)
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
         """Blocks ``(w w^T) (x) H_d`` with ``H_d`` the 3 x 3 Hessian of the pair's energy in ``d`` (projected per
@@ -295,7 +332,7 @@ class LaggedAdhesion:
         if projection not in ("none", "clamp", "abs"):
             raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
         r, dt, _, g = self._terms(x)
-        act = np.flatnonzero(r > 0) if self.delta_t is None else np.arange(r.size)
+        act = np.flatnonzero(r > 0) if self.delta_t is None and self.k_shear is None else np.arange(r.size)
         if act.size == 0:
             return HessianBlocks.empty(4)
         r, dt, g, n = r[act], dt[act], g[act], self.normal[act]
@@ -310,6 +347,8 @@ class LaggedAdhesion:
             H = H + (A * -r * g)[:, None, None] * (np.einsum("ki,kj->kij", gn, gT) + np.einsum("ki,kj->kij", gT, gn))
             H = H + (A * -(1.0 + r) * g)[:, None, None] * np.einsum("ki,kj->kij", gT, gT)
             H = H + (A * (1.0 + r) * g * 2.0 / self.delta_t ** 2)[:, None, None] * P
+        if self.k_shear is not None:
+            H = H + self.k_shear * (np.eye(3)[None] - np.einsum("ki,kj->kij", n, n))
         if projection != "none":
             lam, V = np.linalg.eigh(H)
             lam = np.maximum(lam, 0.0) if projection == "clamp" else np.abs(lam)
@@ -319,11 +358,15 @@ class LaggedAdhesion:
         return HessianBlocks(self.vertices[act], blocks)
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
-        """d(dE/dx)/d beta (linear in beta), dimensionless force per N, shape ``(n, 3)``.
+        """d(dE/dx)/d ``name`` (linear in either): ``"beta"`` dimensionless force per N, ``"k_shear"`` m
+        (the shear openings ``P d`` scattered), shape ``(n, 3)``.
 
         Raises:
-            KeyError: ``name`` is not ``"beta"``.
+            KeyError: ``name`` not in :attr:`parameter_names`.
         """
-        if name != "beta":
-            raise KeyError(f"LaggedAdhesion has no parameter {name!r}; known: {self.parameter_names}")
-        return self._gradient_with(x, 1.0)
+        if name == "beta":
+            return self._gradient_with(x, 1.0)
+        if name == "k_shear" and name in self.parameter_names:
+            shear = self._shear_opening(x)
+            return scatter_gradient(x.shape[0], self.vertices, self.weights[:, :, None] * shear[:, None, :])
+        raise KeyError(f"LaggedAdhesion has no parameter {name!r}; known: {self.parameter_names}")

@@ -125,6 +125,11 @@ class CandidateHook:
             return math.inf
         return float(v)
 
+    def _shear_stiffness(self) -> float | None:
+        """``adhesion.shear_stiffness`` in N/m per pair, None when the bonds have no compliant layer."""
+        v = self.params.get("adhesion.shear_stiffness")
+        return None if v is None else float(v)
+
     def peeled(self, state) -> bool:
         """Whether the adhesion bonds are gone at ``state`` (its time ``t`` s at or past
         ``adhesion.release_time``, to :data:`RELEASE_TIME_TOLERANCE`: the step clock is a sum of
@@ -187,8 +192,8 @@ class CandidateHook:
         if "stiction" in p and friction is not None:
             out.append(StictionFriction(friction, p["stiction"], self.setting("stiction.slip_scale")))
         if "adhesion" in p and not self.peeled(state):
-            shear = self.setting("adhesion.shear")
-            if math.isinf(shear):
+            shear, k_shear = self.setting("adhesion.shear"), self._shear_stiffness()
+            if math.isinf(shear) and k_shear is None:
                 v, w, n = bonded_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
                                        self.setting("adhesion.reach"), self.setting("adhesion.release"),
                                        self.bonded(state))
@@ -196,7 +201,7 @@ class CandidateHook:
                 v, w, n = anchored_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model),
                                          model.contact.eps, self.setting("adhesion.reach"), self.anchors(state))
             out.append(LaggedAdhesion(v, w, n, model.contact.eps, p["adhesion"], self.setting("adhesion.delta"),
-                                      None if math.isinf(shear) else shear))
+                                      None if math.isinf(shear) else shear, k_shear))
         return out
 
     @staticmethod
@@ -232,7 +237,7 @@ class CandidateHook:
         """New ``candidate_state`` after a step that ended at ``x`` (viscoelastic relaxation, adhesion bonds)."""
         out = dict(state_in.candidate_state or {})
         shear = self.setting("adhesion.shear")
-        if "adhesion" in self.params and math.isinf(shear):
+        if "adhesion" in self.params and math.isinf(shear) and self._shear_stiffness() is None:
             out[_ADHESION_KEY] = (np.zeros(0, np.int64) if self.peeled(state_in) else
                                   bonded_after(x, _gel_contact_vertices(model), _sheet_triangles(model),
                                                model.contact.eps, self.setting("adhesion.reach"),
@@ -242,7 +247,8 @@ class CandidateHook:
             anchors = (no_anchors() if self.peeled(state_in) else
                        anchored_after(x, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
                                       self.setting("adhesion.reach"), release,
-                                      release * shear / self.setting("adhesion.delta"), self.anchors(state_in)))
+                                      release * shear / self.setting("adhesion.delta"),  # inf: the layer's spring
+                                      self.anchors(state_in)))
             out[_ADHESION_KEY], out[_ANCHOR_TRIANGLE_KEY], out[_ANCHOR_WEIGHTS_KEY] = anchors
         if "gel_viscoelasticity" in self.params:
             Fr = self.relaxed_states(model, state_in, elastic)

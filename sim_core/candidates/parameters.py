@@ -14,12 +14,15 @@ CANDIDATE_NAMES = ("stiction", "gel_viscoelasticity", "adhesion", "anisotropic_b
 
 CANDIDATE_SETTINGS = {"stiction.slip_scale": 2.0, "gel_viscoelasticity.tau": 0.3, "adhesion.delta": 2.5e-4,
                       "adhesion.reach": None, "adhesion.release": None, "adhesion.release_time": None,
-                      "adhesion.shear": None}
+                      "adhesion.shear": None, "adhesion.shear_stiffness": None}
 """Secondary settings and their defaults (``adhesion.reach`` None = ``ADHESION_REACH_FRACTION``
 ``adhesion.delta``, ``adhesion.release`` None = ``ADHESION_RELEASE_FRACTION`` ``adhesion.delta``;
 ``adhesion.shear`` None = no shear: the tangential length ``delta_t`` (m) of the anchored bonds' coupled
 law (:mod:`sim_core.candidates.adhesion`, shear), the bonds hold the sheet's point in every direction; by
-default a bond pulls along the normal only; ``adhesion.release_time`` None = never: from that simulated time (s) on, every bond is broken and
+default a bond pulls along the normal only; ``adhesion.shear_stiffness`` None = no compliant layer: the tangential
+stiffness ``k_t`` (N/m per bonded pair) of anchored bonds that hold in shear with a linear spring beside the normal
+law (:mod:`sim_core.candidates.adhesion`, shear compliance; exclusive with ``adhesion.shear``);
+``adhesion.release_time`` None = never: from that simulated time (s) on, every bond is broken and
 none forms, the peel of a gel whose tack is lost;
 :meth:`sim_core.candidates.hook.CandidateHook.setting`)."""
 
@@ -47,4 +50,7 @@ def validate_candidate_parameters(params: Mapping[str, float] | None) -> dict[st
         if name in CANDIDATE_SETTINGS and v <= 0:
             raise ConfigError(f"candidate setting {name!r} must be > 0, got {v}")
         out[name] = v
+    if out.get("adhesion.shear") is not None and out.get("adhesion.shear_stiffness") is not None:
+        raise ConfigError("candidate settings 'adhesion.shear' (the coupled law's delta_t) and "
+                          "'adhesion.shear_stiffness' (the compliant layer's k_t) exclude each other; give one")
     return out

@@ -28,11 +28,29 @@ the same nominal values on its copy of the model, so that the replay is the one 
 from __future__ import annotations
 
 import dataclasses
+import math
 import multiprocessing
 from typing import Any, Mapping, Sequence
 
 from sysid.calibration_secant import (CONTACT_ONSET_PARAMETERS, SECANT_PARAMETERS, FirstReplay, first_probe_values,
                                       resume_before_contact)
+
+
+def calibration_probe(model, params: Sequence[str], *, secant_replays: int, max_replays: int | None,
+                      max_time: float | None, names: Sequence[str] = SECANT_PARAMETERS) -> "ProbeWorker | None":
+    """A :class:`ProbeWorker` for :func:`sysid.calibration.calibrate` of ``model`` with ``params``, or None where
+    its replay would not be the secant stage's first one or cannot run: no secant replay (``secant_replays``
+    0), a parameter fit that may step (parameters with a budget ``max_replays`` other than one replay, or a
+    time budget ``max_time``), no secant parameter ``names`` left outside ``params``, or Taichi already started
+    in this process (a forked child could not run it). Through a drive the child replays through the one
+    ``model`` holds when it is forked (set it first). Used by ``thinshell diagnose``'s signature stage and by
+    ``thinshell sysid`` (:func:`sysid.fit_recording.fit_recording`)."""
+    from sim_core.ti_backend import current_arch
+
+    if not (secant_replays > 0 and max_time is None and (not params or max_replays == 1) and current_arch() is None):
+        return None
+    names = tuple(n for n in names if n not in tuple(params))
+    return ProbeWorker(model, params, names) if names else None
 
 
 class ProbeWorker:
@@ -83,14 +101,17 @@ class ProbeWorker:
         """Whether the child takes a request now: its probe is sent, no request is pending, not closed."""
         return self._received and not self._pending and not self._closed
 
-    def submit(self, nominal: Mapping[str, float], params: Mapping[str, float], resume: Any = None) -> bool:
+    def submit(self, nominal: Mapping[str, float], params: Mapping[str, float], resume: Any = None,
+               kinematic: bool = False) -> bool:
         """Ask the child for the replay of ``params`` started at ``resume`` (a :class:`~sysid.observation.Resume`
         or None: from t = 0), with ``nominal`` as the model's nominal values (``ObservationModel.set_nominal``:
-        the calibration's parameters). False (nothing asked) when the child is not :attr:`available`."""
+        the calibration's parameters); with ``kinematic`` the recorded pose imposed (the drive the child holds set
+        aside for it, as :func:`sysid.calibration.kinematic_reference` does). False (nothing asked) when the child
+        is not :attr:`available`."""
         if not self.available:
             return False
         try:
-            self._conn.send((dict(nominal), dict(params), resume))
+            self._conn.send((dict(nominal), dict(params), resume, bool(kinematic)))
         except (OSError, ValueError):
             self.close()
             return False
@@ -156,15 +177,20 @@ def _probe(model, params: tuple[str, ...], names: tuple[str, ...], conn) -> None
 
 
 def _serve(model, conn) -> None:
-    """The child after its probe: replay each request ``(nominal, params, resume)`` and send the trace
+    """The child after its probe: replay each request ``(nominal, params, resume, kinematic)`` and send the trace
     without states (None on failure), until the parent closes its end."""
     while True:
-        nominal, params, resume = conn.recv()
+        nominal, params, resume, kinematic = conn.recv()
         out = None
+        stiffness, damping = model.drive_stiffness, model.drive_damping
         try:
             model.reset_nominal()
             model.set_nominal(nominal)
+            if kinematic:
+                model.set_drive_stiffness(math.inf)
             out = dataclasses.replace(model.simulate(params, resume=resume), states=None)
         except Exception:  # noqa: BLE001 -- any failure: the parent replays it itself and reports it there
             out = None
+        finally:
+            model.set_drive_stiffness(stiffness, damping)
         conn.send(out)

@@ -46,13 +46,13 @@ import numpy as np
 from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import (CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS, CalibrationResult, calibrate,
                                kinematic_reference, nominal_sensor_calibration)
-from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS
+from sysid.calibration_secant import SECANT_REPLAYS
 from sysid.drive_calibration import fit_drive
 from sysid.diagnose.damping_refit import refit_damping
 from sysid.diagnose.heldout import leave_one_event_out
 from sysid.diagnose.gain_guard import split_by_gain
 from sysid.diagnose.plasticity_refit import refit_plasticity
-from sysid.diagnose.probe_worker import ProbeWorker
+from sysid.diagnose.probe_worker import ProbeWorker, calibration_probe
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
 from sysid.diagnose.stiction_refit import cross_channel_refit
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
@@ -219,12 +219,23 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
         drive = fit_drive(model)
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     worker = probe_worker_for(model, params, settings)
+    beside: dict[str, Any] = {}
+
+    def kinematic_beside(values: Mapping[str, float]) -> None:
+        # a secant replay about to be made here, its probe taken: the kinematic reference at its values in the
+        # probe process beside it (taken where these become the calibrated values, as they do when the step is
+        # accepted; else replayed after the calibration as before)
+        if worker is not None and not beside and math.isfinite(model.drive_stiffness) and worker.submit(
+                {n: values[n] for n in params if n in values}, values, kinematic=True):
+            beside["values"] = dict(values)
+
     try:
         cal = calibrate(model, params, max_nfev=settings.calibration_max_nfev, workers=settings.workers,
                         max_time=settings.calibration_max_time, max_replays=settings.calibration_max_replays,
                         secant_replays=settings.calibration_secant_replays if settings.calibrate else 0,
                         drive=settings.calibration_drive and settings.calibrate,
-                        secant_first=None if worker is None else worker.result, batched=settings.batched,
+                        secant_first=None if worker is None else worker.result,
+                        secant_before=None if worker is None else kinematic_beside, batched=settings.batched,
                         batch_size=settings.batch_size)
     except (CalibrationError, SimulationDivergedError) as err:
         # keep what the recording alone can tell (the sensor-chain tests) and say why the rest is missing
@@ -235,13 +246,16 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
         if worker is not None:
             worker.close()
         raise
+    made = worker.collect() if beside else None
+    if made is not None and beside["values"] != dict(cal.params):
+        made = None  # the step was not taken: the calibrated values are another replay's
     if worker is not None and not cal.prediction:
         worker.close()
         worker = None
     prediction = {ch: np.asarray(v, dtype=float) for ch, v in (cal.prediction or {}).items()}
     reference = None
     try:
-        reference = kinematic_reference(model, cal) if prediction else None
+        reference = kinematic_reference(model, cal, made) if prediction else None
     except SimulationDivergedError as err:
         notes.append(f"{bag}: the replay with the recorded pose imposed diverged ({err}); gel damping is read "
                      "against the drive's replay")
@@ -261,18 +275,14 @@ def without_replays(p: Prepared) -> Prepared:
 
 def probe_worker_for(model: ObservationModel, params: Sequence[str], settings: SignatureSettings) -> ProbeWorker | None:
     """A :class:`~sysid.diagnose.probe_worker.ProbeWorker` for the calibration of ``model``, or None where
-    its replay would not be the secant stage's first one or cannot run: ``settings.probe_worker`` off,
-    no calibration or no secant replay, a parameter fit that may step (a budget other than one replay, or a
-    time budget), or Taichi already started here (a forked child could not run it). Through a drive the child
-    replays through the one ``model`` holds when it is forked (:func:`prepare` sets it first)."""
-    from sim_core.ti_backend import current_arch
-
-    if not (settings.probe_worker and settings.calibrate and settings.calibration_secant_replays > 0
-            and settings.calibration_max_time is None
-            and (not params or settings.calibration_max_replays == 1) and current_arch() is None):
+    ``settings.probe_worker`` is off, there is no calibration, or :func:`~sysid.diagnose.probe_worker.calibration_probe`
+    finds its replay would not be the secant stage's first one or cannot run (no secant replay, a parameter fit
+    that may step: a budget other than one replay, or a time budget; Taichi already started here). Through a drive
+    the child replays through the one ``model`` holds when it is forked (:func:`prepare` sets it first)."""
+    if not (settings.probe_worker and settings.calibrate):
         return None
-    names = tuple(n for n in SECANT_PARAMETERS if n not in tuple(params))
-    return ProbeWorker(model, params, names) if names else None
+    return calibration_probe(model, params, secant_replays=settings.calibration_secant_replays,
+                             max_replays=settings.calibration_max_replays, max_time=settings.calibration_max_time)
 
 
 # ================================================================================ refits

@@ -81,7 +81,8 @@ def test_fit_result_is_latched_and_applied_to_the_sim_node(ros_context, tmp_path
         assert result["applied"] == {"contact.stiffness": True} and result["apply_to"] == "/thinshell_sim"
         job = seen[0]
         assert job.bag == tmp_path and job.out == tmp_path / "rep" and not job.force
-        assert job.options == FitOptions(params=("contact.stiffness",), t_max=0.5)  # the fitter's defaults else
+        # the fitter's defaults else, but for the calibration's replays in this process (no fork beside DDS threads)
+        assert job.options == FitOptions(params=("contact.stiffness",), t_max=0.5, probe_worker=False)
         assert not h.node.busy
     finally:
         h.close()

@@ -169,3 +169,43 @@ def test_anchored_bonds_hold_their_sheet_point_until_the_shear_release():
     far = x0.copy()
     far[0] += [6 * DELTA, 0.0, 2 * DELTA]
     assert anchored_after(far, gel, tri, EPS, reach, release, release_t, anchors)[0].size == 0
+
+
+@pytest.mark.parametrize("shift", [(0.3, 0.2, 0.5), (1.0, -0.4, 0.0), (0.2, 0.1, 2.0), (0.5, 0.5, -0.2)])
+def test_compliant_layer_gradient_hessian_and_stiffness_derivative_match_finite_differences(shift):
+    """The compliant layer (normal law + k_t |P d|^2 / 2): gradient and Hessian against central differences of
+    the energy / gradient, the projected Hessian PSD, and d(grad E)/d k_t against a central difference in k_t."""
+    x, v, w, n = _anchored_pair(np.asarray(shift) * DELTA)
+    k = 3.0
+
+    def bonds(k_t):
+        return LaggedAdhesion(v, w, n, EPS, beta=0.2, delta=DELTA, k_shear=k_t)
+
+    ad = bonds(k)
+    x = x + np.random.default_rng(7).normal(scale=1e-7, size=x.shape)
+    assert relative_error(ad.gradient(x), fd_gradient(ad.energy, x, h=1e-9)) < 1e-5
+    H = dense_hessian(ad.hessian(x, "none"), 4)
+    assert relative_error(H, fd_hessian(ad.gradient, x, h=1e-9)) < 1e-5
+    assert np.linalg.eigvalsh(dense_hessian(ad.hessian(x, "clamp"), 4)).min() > -1e-9 * np.abs(H).max()
+    h = 1e-4
+    fd = (bonds(k + h).gradient(x) - bonds(k - h).gradient(x)) / (2 * h)
+    assert relative_error(ad.parameter_gradient(x, "k_shear"), fd) < 1e-8
+
+
+def test_compliant_layer_is_a_linear_shear_spring_beside_the_normal_law():
+    """Known answer: a bond at zero normal opening slid by t along the sheet pulls the gel back with k_t t (any t:
+    the layer does not soften), and its normal force is the normal law's; k_t = 0 is the normal-only law."""
+    k_t = 2.5
+    for t in np.array([0.01, 1.0, 10.0, 40.0]) * DELTA:
+        x, v, w, n = _anchored_pair(np.array([t, 0.0, 0.0]))
+        force_on_gel = -LaggedAdhesion(v, w, n, EPS, 0.2, DELTA, k_shear=k_t).gradient(x)[0]
+        assert force_on_gel[0] == pytest.approx(-k_t * t, rel=1e-12) and abs(force_on_gel[2]) < 1e-15
+    x, v, w, n = _anchored_pair(np.array([3 * DELTA, 0.0, DELTA]))
+    normal_only = LaggedAdhesion(v, w, n, EPS, 0.2, DELTA).gradient(x)
+    layered = LaggedAdhesion(v, w, n, EPS, 0.2, DELTA, k_shear=k_t).gradient(x)
+    assert layered[0, 2] == pytest.approx(normal_only[0, 2], rel=1e-12)
+    assert np.array_equal(LaggedAdhesion(v, w, n, EPS, 0.2, DELTA, k_shear=0.0).gradient(x), normal_only)
+    with pytest.raises(ConfigError, match="not both"):
+        LaggedAdhesion(v, w, n, EPS, 0.2, DELTA, delta_t=DELTA, k_shear=k_t)
+    with pytest.raises(ConfigError, match="k_shear"):
+        LaggedAdhesion(v, w, n, EPS, 0.2, DELTA, k_shear=-1.0)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from sysid.diagnose.probe_worker import calibration_probe
 from sysid.diagnose.signature_engine import SignatureSettings, probe_worker_for
 
 REPO = Path(__file__).resolve().parents[3]
@@ -87,3 +88,62 @@ def test_diagnose_command_makes_the_probe_beside_unless_asked_for_one_process():
 
     assert signature_settings(build_parser().parse_args(["bag"])).probe_worker
     assert not signature_settings(build_parser().parse_args(["bag", "--one-process"])).probe_worker
+
+
+def test_sysid_command_makes_the_probe_beside_unless_asked_for_one_process():
+    from sysid.cli import build_parser, fit_options
+    from sysid.fit_recording import FitOptions
+
+    assert FitOptions().probe_worker and fit_options(build_parser().parse_args(["bag"])).probe_worker
+    assert not fit_options(build_parser().parse_args(["bag", "--one-process"])).probe_worker
+    # none where its replay would not be the secant stage's first: the stick regularisation fitted, no secant
+    # replay, a time budget, or a parameter fit that may step
+    for params, replays, budget, most in ((("contact.eps_v",), 2, None, 1), ((), 0, None, 1), ((), 2, 10.0, 1),
+                                          (("gel.youngs_modulus",), 2, None, 3)):
+        assert calibration_probe(None, params, secant_replays=replays, max_replays=most, max_time=budget) is None
+
+
+PREPARED = """
+import sys
+import numpy as np
+import sysid.observation as observation
+from sysid.diagnose.signature_engine import SignatureSettings, prepare, without_replays
+
+made_here = []
+simulate = observation.ObservationModel.simulate
+observation.ObservationModel.simulate = lambda self, *a, **k: made_here.append(1) or simulate(self, *a, **k)
+common = dict(t_max=0.8, simulation={"gel_resolution": [4, 3, 2]})
+prepared = prepare(sys.argv[1], SignatureSettings(probe_worker=True, **common))
+assert prepared.calibration.drive.compliant and prepared.calibration.secant.accepted
+# the drive's calibration started no Taichi here, so the probe process forked: here the start replay and the secant
+# step; the probe and the kinematic reference there
+assert len(made_here) == 2, len(made_here)
+# after the kinematic reference the probe process replays through the drive again (the refits' later replays)
+worker = prepared.replays
+assert worker.submit(prepared.calibration.params, prepared.calibration.params) and worker.collect().drive is not None
+beside = without_replays(prepared)
+made_here.clear()
+alone = prepare(sys.argv[1], SignatureSettings(probe_worker=False, **common))
+assert len(made_here) == 4, len(made_here)
+assert beside.calibration.params == alone.calibration.params
+for ch, values in alone.recording.reference.items():
+    assert np.array_equal(beside.recording.reference[ch], values), ch
+for ch, values in alone.prediction.items():
+    assert np.array_equal(beside.prediction[ch], values), ch
+print("the same calibrated replay and kinematic reference")
+"""
+
+
+def test_diagnosis_makes_its_kinematic_reference_beside_the_secant_step_with_the_same_result():
+    """``signature_engine.prepare`` with the probe process, through the drive: the drive's calibration reads the
+    sensor's normal without starting Taichi, so the calibration's secant probe still forks (until session 53 the
+    normal was read from a started simulation, and every diagnosis through a drive made its probe in one process);
+    the kinematic reference (the recorded pose imposed, at the calibrated values) is replayed there beside the
+    calibration's secant step, after which that process replays through the drive again; the prepared recording is
+    bit for bit the one-process one (nominal_s101's first 0.8 s, coarse gel; the step is accepted there)."""
+    from tests.sysid.conftest import reference_bag
+
+    proc = subprocess.run([sys.executable, "-c", PREPARED, str(reference_bag("nominal_s101"))], cwd=REPO,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "the same calibrated replay and kinematic reference" in proc.stdout
