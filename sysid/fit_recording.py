@@ -59,8 +59,9 @@ class FitOptions:
         gel_element: the gel's element and law in every replay, one of :data:`sim_core.elastic.SOLID_ELEMENTS`
             (``green_strain``: the Green-strain law of :mod:`sim_core.energies.green_strain`), or
             :data:`sysid.gel_law.AUTO_LAW` (the law the recording chooses at the start's values, one replay per
-            law: :func:`sysid.gel_law.choose_gel_law`); None: the scene's. ``fit.json`` reports it
-            (``diagnostics.gel_law``).
+            law: :func:`sysid.gel_law.choose_gel_law`; where the recording barely parts the laws, as a shallow
+            press, that choice follows the start's modulus: docs/benchmarks_log.md, session 53, s53-49law); None:
+            the scene's. ``fit.json`` reports it (``diagnostics.gel_law``).
         arch: elastic terms of the replays: ``cpu`` / ``cuda`` (Taichi) or ``numpy``.
         jacobian: Jacobian provider (``auto``, ``sensitivity``, ``fd``).
         fd_step: finite-difference step in log units.
