@@ -4,7 +4,7 @@ Usage::
 
     thinshell sysid BAG [--scene S] [--params a,b,c] [--out DIR] [--force] [--global] [--max-time T]
                         [--dt DT] [--t-max SECONDS] [--recording-map FILE] [--t-start S] [--t-end S] [--jacobian auto|fd|sensitivity] [--write-scene S]
-                        [--robust hac|block_bootstrap|none] [--nuisance NAME=PRIOR,...|none] [...]
+                        [--robust hac|block_bootstrap|none] [--nuisance NAME=PRIOR,...|none] [--gel-element LAW|auto] [...]
 
 Parses the options into :class:`sysid.fit_recording.FitOptions` and runs
 :func:`sysid.fit_recording.fit_recording`: the bag is read into an evidence bundle, its effector
@@ -22,12 +22,14 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from sim_core.elastic import SOLID_ELEMENTS
 from sim_core.errors import ConfigError, ThinShellError
 from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA,
                        STOP_TRIAL_SIGMA)
 from sysid.fit_recording import FitOptions, fit_recording
+from sysid.gel_law import AUTO_LAW
 from sim_core.batch.sizing import batch_size_arg
 
 PROG = "thinshell sysid"
@@ -84,6 +86,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="elastic terms of the replays: Taichi kernels on cpu/cuda (default: %(default)s; "
                         "same values as numpy to round-off, about 1.3x faster replays) or the NumPy reference")
     p.add_argument("--gel-resolution", help="override the gel tet resolution NX,NY,NZ (faster, coarser)")
+    p.add_argument("--gel-element", choices=(*SOLID_ELEMENTS, AUTO_LAW),
+                   help="the gel's element and law in every replay (default: the scene's, else stable_neohookean; "
+                        "green_strain: Saint Venant-Kirchhoff, whose pressed gel softens while it is sheared, "
+                        "docs/known_answers.md; auto: the recording's choice between stable_neohookean and green_strain "
+                        "by delta-BIC of one replay each at the start's values); fit.json diagnostics.gel_law reports it")
     p.add_argument("--seed", type=int, default=0, help="seed of the global phase")
     p.add_argument("--workers", type=int, default=1, help="processes for batched replays")
     p.add_argument("--batched", action="store_true",
@@ -260,6 +267,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       recording_map=args.recording_map, t_start=args.t_start, t_end=args.t_end,
                       nuisance=_nuisance_arg(args.nuisance),
                       channels=None if channels is None else tuple(channels), gel_resolution=resolution,
+                      gel_element=args.gel_element,
                       arch=args.arch, jacobian=args.jacobian, fd_step=args.fd_step,
                       global_method=args.global_method if args.global_search else None,
                       global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,
@@ -309,6 +317,9 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
         print(f"  tack: {'on' if tack['on'] else 'off'} ({tack['why']})")
     if outcome.scene is not None:
         print(f"fitted scene: {outcome.scene}")
+    law = outcome.document["diagnostics"]["gel_law"]
+    print(f"  gel law: {law['element']}" + (f" (chosen by the recording, delta-BIC {law['choice']['delta_bic']:.4g})"
+                                            if law["choice"] else ""))
     print(f"  replayed at dt = {result.dt:g} s ({result.step_count} steps)")
     method = result.robust.method if result.robust is not None else None
     for name in result.names:

@@ -21,7 +21,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
+from sim_core.elastic import SOLID_ELEMENTS
 from sim_core.errors import ConfigError
+from sim_core.scenes.tactile_scene import SIMULATION_KEYS
 from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
 from sysid.calibration_secant import SECANT_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
@@ -31,6 +33,7 @@ from sysid.evidence import load_evidence
 from sysid.gain_profile import GainProfile
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
                        FitResult, fit)
+from sysid.gel_law import AUTO_LAW, choose_gel_law
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.observation import ObservationModel
 from sysid.report import write_report
@@ -53,6 +56,12 @@ class FitOptions:
             first stamp (None: open); ``t_max`` counts from that window's start.
         channels: channels to fit (None: all the recording has).
         gel_resolution: gel tet resolution ``(NX, NY, NZ)`` overriding the scene's, or None.
+        gel_element: the gel's element and law in every replay, one of :data:`sim_core.elastic.SOLID_ELEMENTS`
+            (``green_strain``: the Green-strain law of :mod:`sim_core.energies.green_strain`), or
+            :data:`sysid.gel_law.AUTO_LAW` (the law the recording chooses at the start's values, one replay per
+            law: :func:`sysid.gel_law.choose_gel_law`; where the recording barely parts the laws, as a shallow
+            press, that choice follows the start's modulus: docs/benchmarks_log.md, session 53, s53-49law); None:
+            the scene's. ``fit.json`` reports it (``diagnostics.gel_law``).
         arch: elastic terms of the replays: ``cpu`` / ``cuda`` (Taichi) or ``numpy``.
         jacobian: Jacobian provider (``auto``, ``sensitivity``, ``fd``).
         fd_step: finite-difference step in log units.
@@ -133,6 +142,7 @@ class FitOptions:
     t_end: float | None = None
     channels: tuple[str, ...] | None = None
     gel_resolution: tuple[int, int, int] | None = None
+    gel_element: str | None = None
     arch: str = "cpu"
     jacobian: str = "auto"
     fd_step: float = 0.01
@@ -193,6 +203,9 @@ class FitOptions:
         if self.gel_resolution is not None and (len(self.gel_resolution) != 3
                                                 or any(int(n) < 1 for n in self.gel_resolution)):
             raise ConfigError(f"FitOptions: gel_resolution must be three positive integers, got {self.gel_resolution}")
+        if self.gel_element is not None and self.gel_element not in (*SOLID_ELEMENTS, AUTO_LAW):
+            raise ConfigError(f"FitOptions: gel_element must be one of {', '.join((*SOLID_ELEMENTS, AUTO_LAW))} or None, "
+                              f"got {self.gel_element!r}")
 
     def replace(self, **changes) -> "FitOptions":
         """A copy with ``changes`` (validated again)."""
@@ -277,14 +290,19 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         raise ConfigError(f"output directory {out} exists (use --force / force=True to replace it)")
     if write_scene is not None and Path(write_scene).exists() and not force:
         raise ConfigError(f"scene file {write_scene} exists (use --force / force=True to replace it)")
-    simulation = None if options.gel_resolution is None else {"gel_resolution": [int(n) for n in options.gel_resolution]}
+    simulation = {} if options.gel_resolution is None else {"gel_resolution": [int(n) for n in options.gel_resolution]}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         evidence = load_evidence(bag, scene_path=options.scene, include_image="auto",
                                  recording_map=options.recording_map, t_start=options.t_start, t_end=options.t_end)
+        # auto: one replay per law here (it starts Taichi, so the calibration's secant probe is then not forked)
+        law = None if options.gel_element != AUTO_LAW else choose_gel_law(
+            evidence, dt=options.dt, t_max=options.t_max, arch=options.arch, simulation=simulation)
+        if options.gel_element is not None:
+            simulation["gel_element"] = options.gel_element if law is None else law.chosen
         model = ObservationModel(evidence, scene=options.scene, dt=options.dt, t_max=options.t_max,
                                  channels=None if options.channels is None else list(options.channels),
-                                 simulation=simulation, arch=options.arch)
+                                 simulation=simulation or None, arch=options.arch)
     notes = tuple(str(w.message) for w in caught)
     calibrated = tuple(p for p in options.calibration_params if p not in options.params)
     drive = fit_drive(model) if options.drive and model.sensor is not None else None
@@ -358,6 +376,10 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         doc["diagnostics"]["drive"] = drive.summary()
     if tack is not None:
         doc["diagnostics"]["tack"] = tack.summary()
+    doc["diagnostics"]["gel_law"] = {"element": (model.scene.get("simulation") or {}).get("gel_element",
+                                                                                      SIMULATION_KEYS["gel_element"]),
+                                     "requested": options.gel_element or "scene",
+                                     "choice": None if law is None else law.summary()}
     # the fitted scene is built (and checked) before anything is written
     scene_doc = None if write_scene is None else fitted_scene_from_result(
         result, evidence, options.t_max, calibrated=None if sensor is None else sensor.params)

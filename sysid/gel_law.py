@@ -28,6 +28,10 @@ from sysid.observation import ObservationModel
 GEL_LAWS: tuple[str, ...] = ("stable_neohookean", "green_strain")
 """The gel laws compared by default (:data:`sim_core.elastic.SOLID_ELEMENTS` names)."""
 
+AUTO_LAW = "auto"
+"""``simulation.gel_element`` (``thinshell diagnose`` / ``thinshell sysid --gel-element``) that asks for the law the
+recording chooses (:func:`choose_gel_law`) instead of a named one."""
+
 TACTILE = ("markers_xyz", "markers_uv", "wrench")
 """Channels whose whitened sums of squares are compared."""
 

@@ -10,7 +10,9 @@ Parameters (read at every fit request, so ``ros2 param set`` between fits takes 
 - ``t_max`` (s), ``dt`` (s): fit only the first ``t_max`` s of the recording / replay at step ``dt``;
   0 = the fitter's defaults.
 - ``max_nfev`` (int, 30), ``max_time`` (s, 0 = no budget), ``global_search`` (bool: CMA-ES before the
-  local least squares), ``gel_resolution`` (str ``NX,NY,NZ``, empty = the scene's), ``workers`` (int),
+  local least squares), ``gel_resolution`` (str ``NX,NY,NZ``, empty = the scene's), ``gel_element`` (str, the
+  gel's law as ``thinshell sysid --gel-element``: ``stable_neohookean`` | ``nodal_pressure_neohookean`` |
+  ``green_strain`` | ``auto``; empty = the scene's), ``workers`` (int),
   ``arch`` (``cpu`` | ``cuda`` | ``numpy``), ``sensor_calibration`` (bool, true): the fitter's settings
   (:class:`sysid.fit_recording.FitOptions`; the fit runs :func:`sysid.fit_recording.fit_recording`).
 - ``write_scene`` (str): also write the fitted scene there (``thinshell sysid --write-scene``;
@@ -174,7 +176,8 @@ class SysidNode(Node):
         self.runner = runner or run_fit
         for name, default in (("bag", ""), ("params", ""), ("out", ""), ("force", False), ("t_max", 0.0),
                               ("dt", 0.0), ("max_nfev", FitOptions.max_nfev), ("max_time", 0.0),
-                              ("global_search", False), ("gel_resolution", ""), ("workers", 1),
+                              ("global_search", False), ("gel_resolution", ""), ("gel_element", ""),
+                              ("workers", 1),
                               ("arch", FitOptions.arch), ("sensor_calibration", FitOptions.sensor_calibration),
                               ("apply_to", ""), ("apply_timeout", 10.0), ("write_scene", ""),
                               ("recording_map", "")):
@@ -228,7 +231,8 @@ class SysidNode(Node):
         options = FitOptions(params=params or defaults.params, dt=dt or defaults.dt, t_max=t_max or None,
                              max_nfev=int(self._param("max_nfev")), max_time=max_time or None,
                              global_method="cma" if self._param("global_search") else None,
-                             gel_resolution=gel_resolution, workers=int(self._param("workers")),
+                             gel_resolution=gel_resolution, gel_element=str(self._param("gel_element")).strip() or None,
+                             workers=int(self._param("workers")),
                              arch=str(self._param("arch")),
                              sensor_calibration=bool(self._param("sensor_calibration")),
                              recording_map=recording_map or None,

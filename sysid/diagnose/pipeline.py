@@ -47,6 +47,7 @@ from typing import Any, Sequence
 from sysid.diagnose.schema import SCHEMA_VERSION, STAGES
 from sysid.diagnose.settings import Settings
 from sysid.diagnose.signature_engine import SignatureSettings
+from sysid.gel_law import AUTO_LAW  # ``--gel-element auto``: :func:`with_gel_law` chooses per recording
 
 SCORE, SIGNATURES = STAGES
 
@@ -128,10 +129,6 @@ def premise(bag: str | Path, settings: SignatureSettings) -> Premise:
                    f"the measured pose is its command ({drive.why}): the replay takes the recording's own effector "
                    "motion, so the candidates' score tests against the calibrated nominal replay are exact up to "
                    "the missing effect")
-
-
-AUTO_LAW = "auto"
-"""``simulation.gel_element`` (``--gel-element``) that asks :func:`with_gel_law` to choose the law per recording."""
 
 
 def with_gel_law(bag: str | Path, options: PipelineOptions) -> tuple[PipelineOptions, Any]:

@@ -172,3 +172,24 @@ def test_diagnose_and_sysid_take_the_drive_by_default():
     assert fit_options(sysid_parser().parse_args(["bag", "--drive"])).drive
     assert not fit_options(sysid_parser().parse_args(["bag", "--no-drive"])).drive
     assert "--no-drive" in diagnose_parser().format_help() and "--no-drive" in sysid_parser().format_help()
+
+
+def test_the_gel_law_reaches_the_fits_replays_and_fit_json_names_it(press_bag, tmp_path, capsys):
+    """``--gel-element green_strain`` replays the gel with that law (the press's first replay differs from the scene's
+    Stable Neo-Hookean gel's) and fit.json's ``diagnostics.gel_law`` names the law of each fit; an unknown law is
+    refused naming the choices. (``auto`` end to end: tests/sysid/test_gel_law.py.)"""
+    docs = {}
+    for law in ("scene", "green_strain"):
+        out = tmp_path / law
+        rc = sysid_main([str(press_bag), "--out", str(out), *FAST, *(() if law == "scene" else ("--gel-element", law))])
+        assert rc == 0, capsys.readouterr().err
+        docs[law] = load_fit_json(out / "fit.json")
+    assert docs["scene"]["diagnostics"]["gel_law"] == {"element": "stable_neohookean", "requested": "scene", "choice": None}
+    assert docs["green_strain"]["diagnostics"]["gel_law"] == {"element": "green_strain", "requested": "green_strain",
+                                                              "choice": None}
+    assert "gel law: green_strain" in capsys.readouterr().out
+    first = {k: d["metrics"]["rms_initial"]["wrench"]["rms"] for k, d in docs.items()}
+    assert abs(first["green_strain"] / first["scene"] - 1.0) > 0.1, first  # measured 0.80 / 1.06 N
+    with pytest.raises(SystemExit):
+        sysid_main([str(press_bag), "--gel-element", "mooney"])
+    assert "green_strain" in capsys.readouterr().err

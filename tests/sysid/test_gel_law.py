@@ -80,3 +80,23 @@ def test_the_reference_engines_recording_chooses_the_green_strain_law():
 def test_one_law_is_no_choice():
     with pytest.raises(ValueError, match="at least two"):
         choose_gel_law(None, ("green_strain",))
+
+
+def test_sysid_with_gel_element_auto_fits_with_the_law_the_recording_chooses(concealed, tmp_path, capsys):
+    """``thinshell sysid --gel-element auto``: the fit's replays take the law that made the recording (its first
+    replay, sensor calibrated, follows the recording at the noise; the other law's misses it by 6-37 noise levels) and
+    fit.json's ``diagnostics.gel_law`` reports the choice."""
+    from sysid.cli import sysid_main
+    from sysid.results import load_fit_json
+
+    law, bag = concealed
+    out = tmp_path / "fit"
+    rc = sysid_main([str(bag), "--out", str(out), "--gel-element", "auto", "--params", "gel.youngs_modulus",
+                     "--max-nfev", "1", "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    doc = load_fit_json(out / "fit.json")
+    reported = doc["diagnostics"]["gel_law"]
+    assert reported["element"] == reported["choice"]["chosen"] == law and reported["requested"] == "auto"
+    assert reported["choice"]["delta_bic"] > 1000.0
+    first = doc["metrics"]["rms_initial"]
+    assert max(first[ch]["whitened_rms"] for ch in ("markers_xyz", "wrench")) < 1.5, first

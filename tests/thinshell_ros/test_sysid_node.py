@@ -129,6 +129,9 @@ def test_missing_target_times_out_and_bad_requests_are_refused(ros_context, tmp_
         assert "'gel_resolution' must be NX,NY,NZ" in h.fit().message
         h.node.set_parameters([Parameter("gel_resolution", value="3,3"), Parameter("max_nfev", value=0)])
         assert "FitOptions: max_nfev must be >= 1" in h.fit().message
+        h.node.set_parameters([Parameter("max_nfev", value=30), Parameter("gel_resolution", value=""),
+                               Parameter("gel_element", value="hooke")])
+        assert "gel_element must be one of stable_neohookean" in h.fit().message
     finally:
         h.close()
     with pytest.raises(ConfigError, match=r"lists \['a'\] more than once"):
