@@ -46,8 +46,8 @@ def test_the_materials_from_starts_30_percent_above_and_below_agree_and_cover_th
     secant stage takes a stick regularisation ``contact.eps_v`` of 14.7 mm/s at the start's materials (the recording's
     is 10); held there, the modulus ended at 0.835 x the truth, 2.8 robust sigma away and 12.7 % from the x0.7 fit's.
     Fitted with the materials (``--fit-eps-v``, default; its column the replay's tangent) it comes back within 10 % of
-    the recording's (10.1 mm/s; 10.5 with a forward-difference column) and the modulus to 0.974 (0.949), in 6 replays (13).
-    From x0.7 the stage keeps the scene's 10 mm/s, which is then held (docs/benchmarks_log.md,
+    the recording's (10.1 mm/s; 10.5 with a forward-difference column) and the modulus to 0.974 (0.949), in 6
+    replays (13). From x0.7 the stage keeps the scene's 10 mm/s, which is then held (docs/benchmarks_log.md,
     session 53, 49start).
 
     The bending stiffness, which this 6 mm slide does not load (its Jacobian column about 1/400 of the modulus'), is

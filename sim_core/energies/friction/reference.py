@@ -196,8 +196,9 @@ class LaggedFriction:
         """d(dE/dx)/d eps_v, the friction force's derivative in the mollifier's stick speed, shape ``(n, 3)``, N s/m.
 
         Per pair ``mu lam dt d(f1(y)/y)/d eps_u w_j T u`` (``eps_u = eps_v dt``,
-        :func:`smooth_friction_f1_over_x_eps_derivative`): only the mollified pairs (``|u| < eps_u``) carry it; ``lam``, ``T`` and ``w`` are frozen at ``x^n`` and hold no
-        ``eps_v``. The implicit-function tangent of a step in ``contact.eps_v`` takes it as its ``dg/dp``
+        :func:`smooth_friction_f1_over_x_eps_derivative`): only the mollified pairs (``|u| < eps_u``) carry it;
+        ``lam``, ``T`` and ``w`` are frozen at ``x^n`` and hold no ``eps_v``. The implicit-function tangent of a
+        step in ``contact.eps_v`` takes it as its ``dg/dp``
         (:meth:`sim_core.adjoint.StepLinearization.parameter_rhs`)."""
         u = self.tangential_displacement(x)
         y = np.linalg.norm(u, axis=1)
