@@ -23,7 +23,8 @@ What depends on what (and what is treated as constant):
   differentiated exactly (first-order forward-mode jets of the same closed forms the contact
   potentials use, per Voronoi region). ``lam`` is proportional to ``k_c`` (``contact.stiffness``).
   The friction energy only depends on the projector, so the piecewise choice of tangent basis does
-  not enter.
+  not enter. ``contact.eps_v`` (the mollifier width ``eps_u = eps_v dt``) enters only the step's
+  friction gradient, not the frozen quantities.
 - bending (hinge or Kirchhoff plate energy, both quadratic in ``theta - theta_bar``, see
   :func:`theta_stiffness`) and bending plasticity ``theta_bar^{n+1} = theta - Y sign(theta - theta_bar^n)`` where
   ``|theta - theta_bar^n| > Y`` (yielding branch: d/dx = dtheta/dx, d/dY = -sign), else
@@ -482,13 +483,10 @@ class StepLinearization:
         """dg/dp of global parameter ``name`` at the converged step, shape ``(n, 3)``.
 
         ``sheet.yield_angle`` does not enter the step's gradient (it acts through plasticity).
-
-        Raises:
-            ConfigError: ``contact.eps_v`` (the friction mollifier's width enters the lagged
-                friction's frame, not a gradient term here: no derivative is provided).
+        ``contact.eps_v`` enters through the lagged friction's mollifier alone
+        (:meth:`~sim_core.energies.friction.reference.LaggedFriction.eps_v_gradient`): the frozen normal forces,
+        bases and weights are of ``x^n`` (their tangents are :meth:`state_rhs`'s).
         """
-        if name == "contact.eps_v":
-            raise ConfigError("no adjoint derivative with respect to contact.eps_v (use finite differences)")
         x = self.x
         out = np.zeros((self.n, 3))
         body = name.partition(".")[0]
@@ -524,6 +522,8 @@ class StepLinearization:
                     out += p.gradient(self.x) / self.model.contact.stiffness
                 else:
                     out += p.parameter_gradient(self.x, "stiffness")
+        if name == "contact.eps_v" and self.friction is not None:
+            out += self.friction.eps_v_gradient(self.x)
         if name.startswith("friction.") and self.rows is not None:
             key = self.model._friction_key(name)
             mask = np.array([pair == key for pair in self.rows.body_pairs])

@@ -120,9 +120,9 @@ class FitOptions:
             method's own (a factor 13.8 within the default bounds).
         fit_eps_v: fit the calibration's secant parameters (the lagged friction's stick regularisation
             ``contact.eps_v``, :mod:`sysid.calibration_secant`) with ``params``, from the calibration's value, where
-            the calibration took a value other than the scene's (True, the default; its Jacobian column a forward
-            difference, one plain replay per Jacobian,
-            :data:`sysid.jacobians.DIFFERENCE_STEPS`), so that the fit's own cost decides it jointly with the materials.
+            the calibration took a value other than the scene's (True, the default; its Jacobian column the replay's
+            tangent, :meth:`sim_core.energies.friction.reference.LaggedFriction.eps_v_gradient`, no replay of its own),
+            so that the fit's own cost decides it jointly with the materials.
             False: held at the calibration's value, which a 2-replay secant found at the start's materials and so
             carries the start into the answer (1.7 / 2.4 / 3.1 mm/s on nominal_s101 from starts 0.7 / 1.0 / 1.3 x the
             scene's materials; on this simulator's concealed-arm press-slide from 1.3 x, 14.7 mm/s against the

@@ -21,18 +21,17 @@ from sysid.replay_drive import drive_sensitivities
 
 JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
 
-DIFFERENCE_PARAMETERS = (*SENSOR_PARAMETERS, "contact.eps_v", "candidate.adhesion.shear_stiffness")
+DIFFERENCE_PARAMETERS = (*SENSOR_PARAMETERS, "candidate.adhesion.shear_stiffness")
 """Parameters whose Jacobian columns the sensitivity provider takes by forward differences: the
-replay's sensor offset (not a simulator parameter), the friction mollifier width and the tack's shear layer
-(:data:`sysid.tack.SHEAR_STIFFNESS_SETTING`; no adjoint derivative)."""
+replay's sensor offset (not a simulator parameter) and the tack's shear layer
+(:data:`sysid.tack.SHEAR_STIFFNESS_SETTING`; no adjoint derivative). The friction mollifier width
+``contact.eps_v`` has its tangent (:meth:`sim_core.energies.friction.reference.LaggedFriction.eps_v_gradient`)."""
 
-DIFFERENCE_STEPS = {"sensor.normal_offset": 0.1, "contact.eps_v": 0.1, "candidate.adhesion.shear_stiffness": 0.1}
+DIFFERENCE_STEPS = {"sensor.normal_offset": 0.1, "candidate.adhesion.shear_stiffness": 0.1}
 """Forward-difference step (search coordinates) of each difference parameter, when larger than the
-provider's ``fd_step``: 5 um of sensor offset, 10 % of the stick regularisation. A replay's cost is
-rough at the 0.3 % level under small changes of these two (the lagged friction's stick/slip state and
-the contact set switch pair by pair: on the bench card's press-and-slide, 1 % steps of ``contact.eps_v``
-move the cost up and down by 0.1-0.3 %, and the one-sided 1 % difference was off by a factor 2 from
-a central one), so a 1 % step measures that roughness rather than the slope."""
+provider's ``fd_step``: 5 um of sensor offset, 10 % of the shear layer. A replay's cost is rough at
+the 0.3 % level under small changes of such parameters (the contact set and the lagged friction's
+stick/slip state switch pair by pair), so a 1 % step measures that roughness rather than the slope."""
 
 
 # ====================================================================================== Jacobians

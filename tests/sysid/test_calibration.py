@@ -329,24 +329,33 @@ def test_contact_stiffness_column_matches_central_differences(contact_press):
         assert np.linalg.norm(J_s[:, j] - J_fd[:, j]) / norm < 0.05, name
 
 
-def test_stick_regularisation_column_is_the_secant_over_its_difference_step(contact_slip):
-    """``contact.eps_v`` has no adjoint derivative: its column is the forward secant over
-    :data:`sysid.jacobians.DIFFERENCE_STEPS` (10 %), also when it is the only parameter; it points
-    along the central secant over the same step (the replay's cost is rough on 1 % steps)."""
-    from sysid.fit import FitProblem, SensitivityJacobian, parameter_spec
-    from sysid.jacobians import DIFFERENCE_STEPS
+def test_stick_regularisation_column_is_the_tangent_of_the_replay(contact_slip, monkeypatch):
+    """``contact.eps_v``'s column is the replay's implicit-function tangent (the lagged friction's
+    :meth:`~sim_core.energies.friction.reference.LaggedFriction.eps_v_gradient`, no replay of its own), also when
+    it is the only parameter: against central differences of replays whose steps are solved to 1e-8 m/s (the
+    default 1e-4 m/s makes a replay rough in eps_v at the 5-15 % level of this column; measured: relative error
+    1e-4 at 1 % steps, below 1e-5 at 0.1 %), at two stick speeds. The lagged normal forces, bases and weights are
+    of ``x^n``, so nothing of them leaves the tangent inexact."""
+    import functools
 
+    import sysid.observation as observation
+    from sim_core.solver import SolverConfig
+    from sysid.fit import FitProblem, SensitivityJacobian, parameter_spec
+    from sysid.jacobians import DIFFERENCE_PARAMETERS
+
+    assert "contact.eps_v" not in DIFFERENCE_PARAMETERS
+    monkeypatch.setattr(observation, "SolverConfig", functools.partial(SolverConfig, tol_velocity=1e-8))
     model = _model(contact_slip)
     name = "contact.eps_v"
     problem = FitProblem(model, [parameter_spec(name, model.parameter_value(name))])
-    u, h = np.array([-0.6]), DIFFERENCE_STEPS[name]
-    J = SensitivityJacobian()(problem, u)
-    r0, rp, rm = (problem.residual(u + d) for d in (0.0, h, -h))
-    np.testing.assert_allclose(J[:, 0], (rp - r0) / h, rtol=0, atol=1e-9 * np.abs(J).max())
-    central = (rp - rm) / (2.0 * h)
-    assert np.linalg.norm(central) > 1.0
-    cosine = float(J[:, 0] @ central) / (np.linalg.norm(J[:, 0]) * np.linalg.norm(central))
-    assert cosine > 0.8, cosine
+    h = 1e-3
+    for u in (np.array([-0.6]), np.array([0.0])):
+        runs = problem.sim_runs
+        J = SensitivityJacobian()(problem, u)
+        assert problem.sim_runs == runs + 1  # the column came with the residual's replay
+        central = (problem.residual(u + h) - problem.residual(u - h)) / (2.0 * h)
+        assert np.linalg.norm(central) > 10.0  # the recording sees it
+        assert np.linalg.norm(J[:, 0] - central) / np.linalg.norm(central) < 1e-3, u
 
 
 def test_calibration_recovers_a_known_contact_stiffness_and_stick_regularisation(contact_slip):

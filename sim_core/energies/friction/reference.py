@@ -43,6 +43,13 @@ def smooth_friction_f1_over_x(y: np.ndarray, eps_u: float) -> np.ndarray:
         return np.where(y < eps_u, 2 / eps_u - y / eps_u**2, 1.0 / np.maximum(y, eps_u))
 
 
+def smooth_friction_f1_over_x_eps_derivative(y: np.ndarray, eps_u: float) -> np.ndarray:
+    """``d(f1(y) / y) / d eps_u`` (1/m^2): ``-2 / eps_u^2 + 2 y / eps_u^3`` mollified (``y < eps_u``; ``<= 0``,
+    zero at the seam), 0 sliding (``f1 / y = 1 / y`` there holds no ``eps_u``)."""
+    y = np.asarray(y, dtype=float)
+    return np.where(y < eps_u, -2.0 / eps_u**2 + 2.0 * y / eps_u**3, 0.0)
+
+
 def smooth_friction_f2_x_minus_f1_over_x3(y: np.ndarray, eps_u: float) -> np.ndarray:
     """``(f1'(y) y - f1(y)) / y^3`` (1/m^3): ``-1 / (eps_u^2 y)`` mollified, ``-1 / y^3`` sliding.
 
@@ -184,6 +191,20 @@ class LaggedFriction:
         """
         coefficient = self.lam if pair_mask is None else self.lam * np.asarray(pair_mask, dtype=float)
         return scatter_gradient(x.shape[0], self.vertices, self._pair_gradient(x, coefficient))
+
+    def eps_v_gradient(self, x: np.ndarray) -> np.ndarray:
+        """d(dE/dx)/d eps_v, the friction force's derivative in the mollifier's stick speed, shape ``(n, 3)``, N s/m.
+
+        Per pair ``mu lam dt d(f1(y)/y)/d eps_u w_j T u`` (``eps_u = eps_v dt``,
+        :func:`smooth_friction_f1_over_x_eps_derivative`): only the mollified pairs (``|u| < eps_u``) carry it;
+        ``lam``, ``T`` and ``w`` are frozen at ``x^n`` and hold no ``eps_v``. The implicit-function tangent of a
+        step in ``contact.eps_v`` takes it as its ``dg/dp``
+        (:meth:`sim_core.adjoint.StepLinearization.parameter_rhs`)."""
+        u = self.tangential_displacement(x)
+        y = np.linalg.norm(u, axis=1)
+        scale = self.mu * self.lam * self.dt * smooth_friction_f1_over_x_eps_derivative(y, self.eps_u)
+        tu = np.einsum("kdi,ki->kd", self.tangent, u) * scale[:, None]
+        return scatter_gradient(x.shape[0], self.vertices, self.weights[:, :, None] * tu[:, None, :])
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
         """d(dE/dx)/d mu with every pair's coefficient moving together, shape ``(n, 3)``."""

@@ -167,3 +167,24 @@ def test_friction_errors():
         LaggedFriction(**{**args, "eps_v": 0.0})
     with pytest.raises(ConfigError, match="dt"):
         LaggedFriction(**{**args, "dt": -1.0})
+
+
+def test_eps_v_gradient_matches_central_differences_in_both_regimes():
+    """d(friction force)/d eps_v against central differences of the gradient in eps_v, with pairs on both
+    sides of the mollifier's seam: the mollified pairs carry it, the sliding ones (Coulomb, no eps_v) none."""
+    rng = np.random.default_rng(23)
+    fr, x_prev = _random_friction(rng, p=8)
+    x = x_prev + rng.normal(scale=0.8 * EPS_U, size=x_prev.shape)
+    y = np.linalg.norm(fr.tangential_displacement(x), axis=1)
+    assert np.any(y < 0.9 * EPS_U) and np.any(y > 1.1 * EPS_U)  # both regimes, away from the seam
+    analytic = fr.eps_v_gradient(x)
+    h = 1e-6 * EPS_V
+
+    def gradient_at(eps_v):
+        return LaggedFriction(fr.vertices, fr.weights, fr.tangent, fr.lam, fr.mu, x_prev, eps_v, DT).gradient(x)
+
+    fd = (gradient_at(EPS_V + h) - gradient_at(EPS_V - h)) / (2 * h)
+    assert np.linalg.norm(fd) > 0
+    assert relative_error(analytic, fd) < 1e-6
+    sliding = LaggedFriction(fr.vertices, fr.weights, fr.tangent, fr.lam, fr.mu, x_prev, 0.01 * EPS_V, DT)
+    assert np.all(sliding.eps_v_gradient(x) == 0.0)  # every pair slides: no stick speed in the force
