@@ -108,9 +108,9 @@ class FitOptions:
             where it follows better (:func:`sysid.tack.nominal_tack`); fit.json ``diagnostics.tack`` says what was
             decided and why. False (the default): no tack, a lift's card stays on the table in every replay
             (nominal_s109's sheet points at whitened RMS 82 at the engine's values; 32 with normal-only bonds, 7.6
-            with the compliant layer). Session 52: the normal-only bonds' fold residual drove the materials far off
-            (bending x110). Session 53, with the layer: see :mod:`sysid.tack` and docs/benchmarks_log.md for why it
-            is still not the default.
+            with the compliant layer). Not the default: the layer follows the start's materials and, once the card
+            is carried, the fit spends the materials on the sheet points and the wrench (nominal_s109 from +-30 %
+            starts: 5 of 9 engine values inside the robust 2-sigma; :mod:`sysid.tack`, docs/benchmarks_log.md).
         hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely
