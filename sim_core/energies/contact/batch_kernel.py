@@ -43,6 +43,7 @@ from sim_core.collision.distance_bounds import MIN_SINE_SQUARED, RELATIVE_SLACK
 from sim_core.collision.distances import DistanceDerivatives
 from sim_core.energies.base import positions_key
 from sim_core.energies.contact import distance_kernel as cd
+from sim_core.energies.contact.copy_energy_kernel import penalty_energy_by_copy
 from sim_core.energies.contact.gradient_kernel import add_rows, gather_rows
 from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
 from sim_core.energies.contact.pair_lists import BatchLayout
@@ -371,6 +372,8 @@ class PairBatch:
         self._own_int32: np.ndarray | None = None  # ``own`` as int32 (_own32)
         self._vertices_every: np.ndarray | None = None  # the pairs' vertices, int32 (_every_vertex)
         self._found_rows = 8192  # rows of the active list read back in the first copy (_sorted_found)
+        self._launched: tuple | None = None  # (key, owner, (d, rows), parts, parameters) of the last launch (evaluate)
+        self._own_copy: tuple | None = None  # (copy_of_vertex, own's copies int32) (add_copy_energies)
         vt._batch = ee._batch = self
 
     @property
@@ -466,7 +469,9 @@ class PairBatch:
         device_gradient = ((on_gpu if self.device_gradient is None else self.device_gradient)
                            and derivatives and x_device is not None and m > 0)
         if m:
-            arrays, sums, found = self._launch(x, key, x_device, rows, derivatives, device_hessian, device_gradient)
+            arrays, sums, found, launched = self._launch(x, key, x_device, rows, derivatives, device_hessian,
+                                                         device_gradient)
+            self._launched = (key, _ARRAYS.device().get("launch_owner"), launched, parts, self._kernel_parameters())
         else:
             arrays, sums, found = (None, None), _ARRAYS.rows("gradients", 2 * len(self.own), (3,)), _NONE_FOUND
             sums[:] = 0.0
@@ -501,6 +506,7 @@ class PairBatch:
         else:
             x_arg, vertices, sides, rows_arg = (self._own_positions(x, None), self._layout.host_local(), self.sides,
                                                 self._all)
+        _ARRAYS.device()["launch_owner"] = object()  # the work arrays no longer hold another launch's rows
         _packed_kernel(x_arg, vertices, sides, rows_arg, p, self.split, u, *self._kernel_parameters(),
                        int(bool(derivatives)), *arrays)
         read = min(packed_size(getattr(_ARRAYS, "packed_guess", 64), u, derivatives), out.size)
@@ -598,6 +604,7 @@ class PairBatch:
             hess_arg = new_ndarray(ti.f64, (m, 12, 12))
         if device_gradient:  # likewise: the sums stay where the kernel wrote them
             gradients_arg = new_ndarray(ti.f64, (2 * u, 3))
+        _ARRAYS.device()["launch_owner"] = object()  # this launch's rows now hold the work arrays (copy_energies)
         _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, *self._kernel_parameters(),
                       int(bool(derivatives)), pack, z, d_arg,
                       region_arg, grad_arg, hess_arg, gradients_arg, listed_arg, count_arg)
@@ -611,7 +618,7 @@ class PairBatch:
             found = _sorted_found(listed, listed_arg, self._found_rows)
             self._found_rows = len(found[0]) + len(found[0]) // 4 + 64  # the next read's guess: one copy
 
-        return (grad_arg, hess_arg), (gradients_arg if device_gradient else gradients), found
+        return (grad_arg, hess_arg), (gradients_arg if device_gradient else gradients), found, (d_arg, rows_arg)
 
     def _keep(self, n: int, key: tuple, derivatives: bool, parts: tuple, kept: list, found: tuple | None, arrays,
               sums, device_hessian: bool, device_gradient: bool) -> None:
@@ -652,6 +659,29 @@ class PairBatch:
             else:
                 dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(order, key, active, dd, pot.eps))
+
+    def add_copy_energies(self, pot, key: tuple, copy_of_vertex: np.ndarray, sums) -> bool:
+        """Add potential ``pot``'s (one of the two) penalty energies at the positions ``key`` by copy (J,
+        ``0.5 k_c (d - eps)^2`` of its pairs with ``d < eps`` into the copy of their first vertex in ``copy_of_vertex``)
+        into ``sums`` (a :class:`~sim_core.ti_kernels.copy_vectors.CopySums`) from the distances this batch's last
+        launch left where it ran (:func:`~sim_core.energies.contact.copy_energy_kernel.penalty_energy_by_copy`: no
+        copy of the pairs to the host). False (nothing added) where that launch was not at ``key`` with ``pot``'s
+        ``eps`` or its work arrays have since been taken by another launch."""
+        launched = self._launched
+        kind = 0 if pot is self.vt else 1
+        if launched is None or launched[0] != key or launched[1] is not _ARRAYS.device().get("launch_owner"):
+            return False
+        (d, rows), part, (eps_vt, eps_ee, _, _) = launched[2], launched[3][kind], launched[4]
+        if (eps_vt, eps_ee)[kind] != pot.eps:
+            return False
+        kept = self._own_copy
+        if kept is None or kept[0] is not copy_of_vertex:
+            kept = self._own_copy = (copy_of_vertex, np.take(copy_of_vertex, self.own).astype(np.int32))
+        own_copy = rows_on_device(_ARRAYS.device(), "own_copy", kept[1])
+        penalty_energy_by_copy(d, rows, self._layout.local_on_device() if current_arch() == "cuda"
+                               else self._layout.host_local(), own_copy, part.start, part.stop, pot.eps,
+                               pot.stiffness, sums.values)
+        return True
 
     def add_gradient(self, gradient_device, summed: tuple) -> None:
         """Add summed gradient rows ``summed`` = ``(vertices (u,), rows, n)`` (an evaluation's,

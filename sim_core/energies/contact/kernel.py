@@ -83,6 +83,25 @@ class _Batched:
             add_rows_on_device(gradient_device, vertices, rows)
         return evaluation.energy(self.stiffness)
 
+    def add_copy_energies_on_device(self, x: np.ndarray, x_device: object, copy_of_vertex: np.ndarray,
+                                    sums: object) -> bool:
+        """Add :meth:`copy_energies` at ``x`` ``(n, 3)`` (J by copy) into ``sums`` (a
+        :class:`~sim_core.ti_kernels.copy_vectors.CopySums` over ``copy_of_vertex``; capability
+        :class:`~sim_core.energies.base.DeviceCopyEnergies`) where the pair batch's last launch measured ``x``: its
+        distances summed by copy where they are (:meth:`~sim_core.energies.contact.batch_kernel.PairBatch.
+        add_copy_energies`), nothing read back; True with nothing added where ``x``'s kept evaluation has no active
+        pair; False (nothing added) without such an evaluation or launch (``x_device`` is not read: the distances
+        are the launch's)."""
+        if self._batch is None:
+            return False
+        key = positions_key(x)
+        kept = self._kept(key, 0)
+        if kept is None:
+            return False
+        if kept.active.size == 0:
+            return True
+        return self._batch.add_copy_energies(self, key, copy_of_vertex, sums)
+
     def _evaluation(self, x: np.ndarray, order: int, x_device: object = None) -> PairEvaluation:
         if self._batch is None:
             return super()._evaluation(x, order)
