@@ -122,7 +122,7 @@ def test_the_device_terms_add_their_copy_energies_into_one_sum_read_once(model, 
     from sim_core.energies.base import DeviceCopyEnergies, declares
     from sim_core.ti_kernels.copy_vectors import CopySums
 
-    seen = {}
+    seen, touching = {}, {}  # calls a term, and copies with energy
     line_search = lockstep_module.LockstepSolver._line_search_copies
 
     def spy(self, step, x, d, alpha, slope, open_, terms, x_search, info):
@@ -137,10 +137,13 @@ def test_the_device_terms_add_their_copy_energies_into_one_sum_read_once(model, 
             host = p.copy_energies(x.host, self._copy_of_vertex, B)
             np.testing.assert_allclose(sums.read(), host, rtol=1e-12, atol=1e-15 * np.max(np.abs(host)))
             seen[type(p).__name__] = seen.get(type(p).__name__, 0) + 1
+            touching[type(p).__name__] = touching.get(type(p).__name__, 0) + int(np.count_nonzero(host))
         np.testing.assert_allclose(self._copy_energies(step, x.host, terms, x_search, x.device),
                                    self._copy_energies(step, x.host, terms, x_search), rtol=1e-12)
         return line_search(self, step, x, d, alpha, slope, open_, terms, x_search, info)
 
     monkeypatch.setattr(lockstep_module.LockstepSolver, "_line_search_copies", spy)
     _run(model, DEVICE_CG, steps=1)
-    assert set(seen) == {"LumpedQuadratic", "TiLaggedFriction", "FusedElastic"}
+    assert set(seen) == {"LumpedQuadratic", "TiLaggedFriction", "FusedElastic", "TiVertexTriangleContact",
+                         "TiEdgeEdgeContact"}
+    assert touching["TiVertexTriangleContact"] > 0 and touching["TiEdgeEdgeContact"] > 0  # the kernels summed energies

@@ -516,3 +516,57 @@ def test_a_batch_holds_its_potentials_weakly_and_goes_with_them(ti_cpu):
     finally:
         if enabled:
             gc.enable()
+
+
+@pytest.mark.parametrize("two_pass", [False, True], ids=["one-pass", "two-pass"])
+def test_penalty_energies_by_copy_are_summed_where_the_launch_left_the_distances(ti_cpu, monkeypatch, two_pass):
+    """``add_copy_energies_on_device`` (:class:`~sim_core.energies.base.DeviceCopyEnergies`) after the gradient at
+    ``y``: each potential's ``0.5 k_c (d - eps)^2`` by the copy of its pairs' first vertices, summed from the batch's
+    last launch (no read of the pairs), equal to the NumPy split of the unlinked twin (``copy_energies``) to round-off,
+    after one launch (CPU) or CUDA's two; it follows a changed stiffness; nothing is added (False) before an evaluation
+    of ``y``, after another batch's launch took the work arrays, or at another ``eps``; a copy with no active pair
+    gets exactly 0."""
+    from sim_core.energies.base import DeviceCopyEnergies, declares
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.ti_kernels.copy_vectors import CopySums
+
+    x, linked, alone = _potentials()
+    rng = np.random.default_rng(25)
+    y = x + 0.1 * EPS * rng.normal(size=x.shape)
+    B = 6
+    copy_of_vertex = rng.integers(0, B - 1, size=len(x))  # the last copy has no vertex: no pair
+    wanted = {}
+    for scale in (1.0, 3.0):  # the twins' host split, before the launches are watched
+        for pot in alone:
+            pot.stiffness = K * scale
+        wanted[scale] = [pot.copy_energies(y, copy_of_vertex, B) for pot in alone]
+    monkeypatch.setattr(PairBatch, "two_pass", two_pass)
+    calls = _launches(monkeypatch)
+    sums = CopySums(copy_of_vertex, B)
+    for pot in linked:
+        assert declares(pot, DeviceCopyEnergies)
+        assert not pot.add_copy_energies_on_device(y, None, copy_of_vertex, sums)  # no evaluation of y yet
+    for pot in linked:
+        pot.gradient(y)
+    launches = len(calls)
+    assert launches == (2 if two_pass else 1)
+    for scale in (1.0, 3.0):
+        for pot, want in zip(linked, wanted[scale]):
+            pot.stiffness = K * scale
+            assert np.count_nonzero(want[:-1]) == B - 1 and want[-1] == 0.0
+            sums.zero()
+            assert pot.add_copy_energies_on_device(y, None, copy_of_vertex, sums)
+            got = sums.read()
+            np.testing.assert_allclose(got, want, rtol=1e-13, atol=0.0)
+            assert got[-1] == 0.0
+    assert len(calls) == launches  # summed from the launch's arrays: no new launch
+    x_small, small, _ = _potentials(40)
+    small[0].gradient(x_small)  # another batch's launch takes the work arrays
+    sums.zero()
+    assert not any(pot.add_copy_energies_on_device(y, None, copy_of_vertex, sums) for pot in linked)
+    z = y + 0.01 * EPS
+    for pot in linked:
+        pot.gradient(z)  # launched at z, then another eps: no kept evaluation of z at it
+        pot.eps = 0.5 * EPS
+    assert not any(pot.add_copy_energies_on_device(z, None, copy_of_vertex, sums) for pot in linked)
+    assert not np.any(sums.read())
