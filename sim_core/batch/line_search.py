@@ -9,8 +9,10 @@ its own energy, the trial point's per-copy energies are launched before that rea
 back a trial point for the slope and Armijo tests; the energies are then measured even where no copy passes the slope
 test, which changes no result). From a line search's second trial point on, the tests, acceptances and halvings can be
 decided on the device (:attr:`CopyLineSearch.device_backtrack`, :class:`~sim_core.ti_kernels.backtrack.DeviceBacktrack`:
-the next step sizes are never sent); it pays only where no host term adds energy (today the contact pairs' penalties
-are summed on the host from the pair batch's active list, so their energies would travel up instead of the steps).
+the next step sizes are never sent); it pays only where no host term adds energy (the contact pairs' penalties are
+summed by copy where the pair batch's launch left their distances,
+:mod:`sim_core.energies.contact.copy_energy_kernel`; a term without device sums, e.g. a table plane's penalty, sends its
+energies up instead of the steps).
 """
 
 from __future__ import annotations
@@ -40,8 +42,9 @@ class CopyLineSearch:
     """Where the line search's trial points after the first are decided when the vectors and every term's per-copy
     energies are on the device: ``"always"`` there (:meth:`_backtrack_on_device`), ``"never"`` on the host (one read
     of the slopes and energies a trial point, the next step sizes sent), ``"auto"`` there where the first trial
-    point's host terms had no energy (no contact pair in reach: then a trial point sends nothing; else each would
-    send the host terms' energies, one upload a trial point as the host's step sizes are, plus the state once). The
+    point's host terms had no energy (then a trial point sends nothing; the contact pairs' penalties are device terms
+    where the pair batch measured the trial point; else each would send the host terms' energies, one upload a trial
+    point as the host's step sizes are, plus the state once). The
     same results bit for bit."""
 
     def _line_search_copies(self, step, x: Iterate, d, alpha: np.ndarray, slope: np.ndarray, open_: np.ndarray,
