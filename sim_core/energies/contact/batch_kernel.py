@@ -39,16 +39,14 @@ import weakref
 
 import numpy as np
 
-from sim_core.collision.distance_bounds import MIN_SINE_SQUARED, RELATIVE_SLACK
 from sim_core.collision.distances import DistanceDerivatives
 from sim_core.energies.base import positions_key
-from sim_core.energies.contact import distance_kernel as cd
 from sim_core.energies.contact.copy_energy_kernel import penalty_energy_by_copy
 from sim_core.energies.contact.gradient_kernel import add_rows, gather_rows
 from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
 from sim_core.energies.contact.pair_lists import BatchLayout
+from sim_core.energies.contact.pair_measure import measure_pair, zero_sums
 from sim_core.energies.contact.reference import PairEvaluation
-from sim_core.energies.contact.setup_kernel import _vertex
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device, rows_on_device
@@ -62,101 +60,6 @@ _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linal
 _I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
-@ti.func
-def _may_touch(z0, z1, z2, z3, side: ti.f64, eps: ti.f64, point_first: ti.i32) -> ti.i32:
-    """0 when pair ``[z0, z1, z2, z3]`` (``[p, a, b, c]`` with ``point_first``, else ``[a0, a1, b0, b1]``)
-    is farther than ``eps`` for certain: the box and plane bounds of
-    :mod:`sim_core.collision.distance_bounds` (same tests and margins, one pair)."""
-    limit = eps * (1.0 + RELATIVE_SLACK)
-    # the first primitive's points z0 (and z1 for an edge), the second's z2, z3 (and z1 for a triangle)
-    w, y = z1, z1
-    u, v, r = z2 - z1, z3 - z1, z0 - z1
-    if point_first:
-        w = z0
-    else:
-        y = z2
-        u, v, r = z1 - z0, z3 - z2, z0 - z2
-    a_lo, a_hi = ti.min(z0, w), ti.max(z0, w)
-    b_lo, b_hi = ti.min(ti.min(z2, z3), y), ti.max(ti.max(z2, z3), y)
-    gap = ti.max(a_lo - b_hi, b_lo - a_hi)
-    box_far = gap[0] > limit or gap[1] > limit or gap[2] > limit
-    n = cd._cross(u, v)
-    nn = cd._dot(n, n)
-    usable = nn >= MIN_SINE_SQUARED * cd._dot(u, u) * cd._dot(v, v)
-    h = 0.0
-    if usable:
-        h = cd._dot(n, r) / ti.sqrt(nn)
-    far = usable and side * h > limit
-    if side == 0.0:
-        far = box_far or (usable and ti.abs(h) > limit)
-    return ti.cast(not far, ti.i32)
-
-
-@ti.func
-def _penalty_hessian(i: ti.i32, gap: ti.f64, stiffness: ti.f64, grad: ti.template(), hess: ti.template()):
-    """Row ``i`` of ``hess``, a distance Hessian, replaced by the penalty Hessian
-    ``k_c (grad d grad d^T + (d - eps) hess d)`` (``gap = d - eps``), the reference's operations in its order."""
-    for a in range(12):
-        for b in range(12):
-            hess[i, a, b] = (grad[i, a] * grad[i, b] + gap * hess[i, a, b]) * stiffness
-
-
-@ti.func
-def _scatter_penalty_gradient(i: ti.i32, k: ti.i32, scale: ti.f64, first_row: ti.i32, vertices: ti.template(),
-                              grad: ti.template(), gradients: ti.template()):
-    """``gradients[first_row + v] += scale * grad d`` over the vertices ``v`` of pair ``k`` (its distance
-    gradient in row ``i`` of ``grad``, ``scale = k_c (d - eps)``): the sums of the reference's
-    ``scatter_gradient`` (one ``np.bincount`` in pair, vertex, axis order) when pairs come in order."""
-    for a in range(4):
-        row = first_row + vertices[k, a]
-        for c in ti.static(range(3)):
-            gradients[row, c] += scale * grad[i, 3 * a + c]
-
-
-@ti.func
-def _measure_pair(x: ti.template(), vertices: ti.template(), side: ti.template(), k: ti.i32, i: ti.i32,
-                  split: ti.i32, eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64,
-                  rows_ee: ti.i32, derivatives: ti.i32, z: ti.template(), d: ti.template(), region: ti.template(),
-                  grad: ti.template(), hess: ti.template(), gradients: ti.template()):
-    """Pair ``k`` (``k < split`` vertex-triangle, else edge-edge) into row ``i`` of the work arrays: its positions
-    gathered into ``z[i]``, distance ``d[i]`` and region, or ``d[i] = inf`` and region -1 where the bounds of
-    :func:`_may_touch` rule it out; with ``derivatives`` and ``d < eps`` (``eps`` of its kind) the distance gradient
-    ``grad[i]``, the penalty Hessian ``hess[i]`` and its penalty gradient added per vertex into ``gradients`` (rows
-    ``v``, or ``rows_ee + v`` for an edge-edge pair). Returns 1 where ``d < eps``, else 0."""
-    point_first = 0
-    eps, stiffness, first_row = eps_ee, stiffness_ee, rows_ee
-    if k < split:
-        point_first = 1
-        eps, stiffness, first_row = eps_vt, stiffness_vt, 0
-    p0, p1, p2, p3 = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
-                      _vertex(x, vertices, k, 3))
-    if _may_touch(p0, p1, p2, p3, side[k], eps, point_first):
-        for c in ti.static(range(3)):
-            z[i, 0, c], z[i, 1, c], z[i, 2, c], z[i, 3, c] = p0[c], p1[c], p2[c], p3[c]
-        region[i], d[i] = cd._distance_value(z, i, side[k], point_first)  # inlined once, both kinds
-        if derivatives:
-            if d[i] < eps:
-                cd._pair_derivatives(z, i, side[k], point_first, d, region, grad, hess)
-                _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
-                _scatter_penalty_gradient(i, k, stiffness * (d[i] - eps), first_row, vertices, grad, gradients)
-    else:
-        region[i], d[i] = -1, ti.math.inf
-    return ti.cast(d[i] < eps, ti.i32)
-
-
-@ti.func
-def _zero_sums(gradients: ti.template(), rows: ti.i32, active_count: ti.template()):
-    """The pair kernels' preamble: ``gradients[:rows] = 0`` and ``active_count[0] = 0``. Called at a kernel's top level,
-    so that its two loops are top-level loops of the kernel (parallel on a GPU, serial where :func:`serial_loops`)."""
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for j in range(rows):
-        for c in ti.static(range(3)):
-            gradients[j, c] = 0.0
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for _ in range(1):
-        active_count[0] = 0
-
-
 @fast_kernel
 def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32,
                   eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
@@ -168,21 +71,21 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
     on the CPU's serial loops), their count ``a`` in ``active[0, 0]`` (counted in ``active_count[0]``, zeroed
     first): the list and its length in one array, read back in one copy; with
     ``derivatives`` the distance gradient
-    row ``grad[i]`` and the penalty Hessian row ``hess[i]`` (:func:`_penalty_hessian`, with the
+    row ``grad[i]`` and the penalty Hessian row ``hess[i]`` (:func:`~sim_core.energies.contact.pair_measure._penalty_hessian`, with the
     ``eps`` and ``stiffness`` of their kind) of the pairs with ``d < eps`` (the other rows are left
     as they are), and their penalty gradients ``k_c (d - eps) grad d`` summed per vertex into
     ``gradients`` (``(2 n, 3)``: rows ``v`` for the vertex-triangle pairs, ``n + v`` for the edge-edge
-    pairs, ``n = x.shape[0]``; zeroed first, sums in pair order: :func:`_scatter_penalty_gradient`).
-    A pair that the bounds of :func:`_may_touch` rule out gets ``d[i] = inf`` and region -1
+    pairs, ``n = x.shape[0]``; zeroed first, sums in pair order: :func:`~sim_core.energies.contact.pair_measure._scatter_penalty_gradient`).
+    A pair that the bounds of :func:`~sim_core.energies.contact.pair_measure._may_touch` rule out gets ``d[i] = inf`` and region -1
     (farther than ``eps``: not active, as its distance would say). ``derivatives`` (0 or 1) and the
     pair kind are runtime values: one compiled kernel for every request. With ``pack_region`` (and ``derivatives``)
     the regions are also written, as floats, after the sums: ``gradients[2 n + i // 3, i % 3] = region[i]`` (the
     array then has those rows), so that one copy back brings both."""
     n = x.shape[0]
-    _zero_sums(gradients, derivatives * 2 * n, active_count)
+    zero_sums(gradients, derivatives * 2 * n, active_count)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(count):
-        if _measure_pair(x, vertices, side, rows[i], i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, n,
+        if measure_pair(x, vertices, side, rows[i], i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, n,
                          derivatives, z, d, region, grad, hess, gradients):  # the distance the host keeps
             slot = ti.atomic_add(active_count[0], 1) + 1
             active[slot, 0], active[slot, 1] = ti.cast(i, ti.f64), d[i]
@@ -209,10 +112,10 @@ def _packed_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, coun
     the distance gradients ``(a, 12)`` and the penalty Hessians ``(a, 12, 12)`` of those pairs. A pair's place in the
     order is the number of listed pairs before it (the list is built in no fixed order on a parallel arch), so the
     layout is the same on every arch: :func:`packed_size` entries."""
-    _zero_sums(gradients, derivatives * 2 * u, active_count)
+    zero_sums(gradients, derivatives * 2 * u, active_count)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(count):
-        if _measure_pair(x, vertices, side, rows[i], i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, u,
+        if measure_pair(x, vertices, side, rows[i], i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, u,
                          derivatives, z, d, region, grad, hess, gradients):
             slots[ti.atomic_add(active_count[0], 1)] = i
     ti.loop_config(serialize=ti.static(serial_loops()))
