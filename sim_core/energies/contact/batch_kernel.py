@@ -44,6 +44,7 @@ from sim_core.energies.base import positions_key
 from sim_core.energies.contact.copy_energy_kernel import penalty_energy_by_copy
 from sim_core.energies.contact.gradient_kernel import add_rows, gather_rows
 from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
+from sim_core.energies.contact.listed_kernel import LISTED_FIELDS, chunk_count, listed_derivatives
 from sim_core.energies.contact.pair_lists import BatchLayout
 from sim_core.energies.contact.pair_measure import measure_pair, zero_sums
 from sim_core.energies.contact.reference import PairEvaluation
@@ -233,6 +234,12 @@ class PairBatch:
     :class:`~sim_core.ti_kernels.buffers.DeviceRows` (added into a device gradient there, read on the host only when
     asked), instead of copying them to the host; None: on CUDA. The values are the same."""
 
+    listed: bool | None = None
+    """Derivatives at positions not yet measured (:attr:`two_pass`'s case) in one launch whose list of active pairs
+    stays on the device between its two passes (:mod:`sim_core.energies.contact.listed_kernel`: one copy back after
+    it, instead of the list's read between two launches, the active rows' upload and the regions' read); None: on
+    CUDA. The values are the same."""
+
     packed: bool | None = None
     """Every pair measured (with derivatives where asked) in one launch of :func:`_packed_kernel`, whose results come
     back in one copy (two when the active list is longer than the last one by a quarter), instead of the launches of
@@ -357,6 +364,9 @@ class PairBatch:
         if derivatives and (kept[0] is None or kept[1] is None) and two_pass:
             # on the GPU every array argument crosses to the device and back at each launch: the
             # distances of all pairs first (no derivative arrays), then derivatives of the active ones
+            if (current_arch() == "cuda" if self.listed is None else self.listed) and len(self._all):
+                self._evaluate_listed(x, key, x_device)  # both in one launch, the list kept on the device
+                return
             self.evaluate(x, False, key, x_device)
             kept = [None if pot is None else pot._kept(key, 0) for pot in pots]
         if derivatives and kept[0] is not None and kept[1] is not None:
@@ -379,6 +389,83 @@ class PairBatch:
             arrays, sums, found = (None, None), _ARRAYS.rows("gradients", 2 * len(self.own), (3,)), _NONE_FOUND
             sums[:] = 0.0
         self._keep(x.shape[0], key, derivatives, parts, kept, found, arrays, sums, device_hessian, device_gradient)
+
+    def _evaluate_listed(self, x: np.ndarray, key: tuple, x_device) -> None:
+        """:meth:`evaluate` with derivatives at positions ``x`` not yet measured, in one launch of
+        :func:`~sim_core.energies.contact.listed_kernel.listed_derivatives` (:attr:`listed`) whose active pairs, their
+        distances and regions come back in one copy (a second launch where more pairs are active than the arrays
+        hold: the last list's length and a quarter), kept as :meth:`_keep` keeps the derivatives of known active
+        pairs (the Hessians and the gradient sums left on the device as the second of :attr:`two_pass`'s launches
+        leaves them)."""
+        on_gpu = current_arch() == "cuda"
+        device_hessian = on_gpu if self.device_hessian is None else self.device_hessian
+        device_gradient = (on_gpu if self.device_gradient is None else self.device_gradient) and x_device is not None
+        capacity = self._found_rows
+        while True:
+            arrays, sums, out, launched = self._listed_launch(x, key, x_device, capacity, device_hessian,
+                                                              device_gradient)
+            a = int(out[0])
+            self._found_rows = a + a // 4 + 64  # the next list's capacity
+            if a <= capacity:
+                break
+            capacity = self._found_rows
+        listed = out[1:1 + LISTED_FIELDS * a].reshape(a, LISTED_FIELDS)
+        rows, distances = listed[:, 0].astype(np.int64), listed[:, 1].copy()
+        work_arrays(a)[1][:a] = listed[:, 2]  # the regions where _keep reads the launch's (by place)
+        cut = int(np.searchsorted(rows, self.split))
+        parts = (slice(0, cut), slice(cut, a))
+        known = [None if pot is None else PairEvaluation(0, key, rows[part] - start, DistanceDerivatives(
+            distances[part], None, None, np.zeros(part.stop - part.start, np.int64)), pot.eps)
+            for pot, part, start in zip((self.vt, self.ee), parts, (0, self.split))]
+        self._launched = (key, _ARRAYS.device().get("launch_owner"), launched, parts, self._kernel_parameters())
+        self._keep(x.shape[0], key, True, parts, known, None, arrays, sums, device_hessian, device_gradient)
+
+    def _listed_launch(self, x: np.ndarray, key: tuple, x_device, capacity: int, device_hessian: bool,
+                       device_gradient: bool) -> tuple:
+        """One launch of :func:`~sim_core.energies.contact.listed_kernel.listed_derivatives` over every pair at ``x``
+        with room for ``capacity`` active pairs; returns ``((grad, hess), sums, out, (d, layout_rows))``: the active
+        pairs' distance gradient and penalty Hessian rows by place (new ndarrays with ``device_hessian``, else the
+        host's :func:`work_arrays`), the per-vertex gradient sums ``(2 u, 3)`` (a new ndarray with ``device_gradient``,
+        else the host's, copied back), ``out`` on the host (its first ``1 + 3 capacity`` entries copied back) and the
+        places' distances and layout rows where the launch left them (:meth:`add_copy_energies`)."""
+        p, u = len(self._all), len(self.own)
+        on_gpu = current_arch() == "cuda"
+        shared = _ARRAYS.device()
+        work = (_ARRAYS.rows("z", p, (4, 3)), _ARRAYS.rows("d", p), _ARRAYS.rows("region", p, (), np.int32),
+                _ARRAYS.rows("marks", p + 1, (), np.int32), _ARRAYS.rows("chunk_total", chunk_count(p), (), np.int32),
+                _ARRAYS.rows("active_count", 1, (), np.int32))
+        listed = (_ARRAYS.rows("order", capacity, (), np.int32), _ARRAYS.rows("z_active", capacity, (4, 3)),
+                  _ARRAYS.rows("d_active", capacity), _ARRAYS.rows("region_active", capacity, (), np.int32),
+                  _ARRAYS.rows("layout_rows", capacity, (), np.int32))
+        grad, hess = _ARRAYS.rows("grad", capacity, (12,)), _ARRAYS.rows("hess", capacity, (12, 12))
+        gradients = _ARRAYS.rows("gradients", 2 * u, (3,))
+        out = _ARRAYS.rows("listed_out", 1 + LISTED_FIELDS * capacity)
+        names = ("z", "d", "region", "marks", "chunk_total", "active_count")
+        work = tuple(on_device(shared, name, host, scratch=True) for name, host in zip(names, work))
+        names = ("order", "z_active", "d_active", "region_active", "layout_rows")
+        listed = tuple(on_device(shared, name, host, scratch=True) for name, host in zip(names, listed))
+        out_arg = on_device(shared, "listed_out", out, scratch=True)
+        gradients_arg = on_device(shared, "gradients", gradients, scratch=True)
+        if on_gpu:
+            x_arg, vertices, sides, rows = (self._device_positions(x, key, x_device), self._layout.local_on_device(),
+                                            on_device(self._device, "sides", self.sides),
+                                            on_device(self._device, "all_rows", self._all))
+        else:
+            x_arg, vertices, sides, rows = self._own_positions(x, x_device), self._layout.host_local(), self.sides, \
+                self._all
+        grad_arg, hess_arg = grad, hess
+        if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid
+            grad_arg, hess_arg = new_ndarray(ti.f64, (capacity, 12)), new_ndarray(ti.f64, (capacity, 12, 12))
+        if device_gradient:  # likewise: the sums stay where the kernel wrote them
+            gradients_arg = new_ndarray(ti.f64, (2 * u, 3))
+        _ARRAYS.device()["launch_owner"] = object()  # this launch's places now hold the work arrays (copy_energies)
+        listed_derivatives(x_arg, vertices, sides, rows, p, self.split, capacity, self._kernel_parameters(), work,
+                           listed, grad_arg, hess_arg, gradients_arg, out_arg)
+        if out_arg is not out:
+            copy_back(out, out_arg, 1 + LISTED_FIELDS * capacity)
+        if not device_gradient and gradients_arg is not gradients:
+            copy_back(gradients, gradients_arg, 2 * u)
+        return (grad_arg, hess_arg), (gradients_arg if device_gradient else gradients), out, (listed[2], listed[4])
 
     def _evaluate_packed(self, x: np.ndarray, key: tuple, derivatives: bool) -> None:
         """:meth:`evaluate` of every pair at ``x`` in one launch of :func:`_packed_kernel` (:attr:`packed`), its
@@ -634,3 +721,5 @@ def compile_kernels() -> None:
     batch.packed = True  # the packed launch too
     for derivatives in (False, True):
         batch.evaluate(x + 1e-5, derivatives)
+    batch.packed, batch.two_pass, batch.listed = False, True, True  # and the listed one
+    batch.evaluate(x + 2e-5, True)

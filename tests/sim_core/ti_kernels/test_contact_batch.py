@@ -570,3 +570,49 @@ def test_penalty_energies_by_copy_are_summed_where_the_launch_left_the_distances
         pot.eps = 0.5 * EPS
     assert not any(pot.add_copy_energies_on_device(z, None, copy_of_vertex, sums) for pot in linked)
     assert not np.any(sums.read())
+
+
+@pytest.mark.parametrize("capacity", [None, 1], ids=["guessed", "overflow"])
+def test_the_listed_launch_equals_the_two_passes_bit_for_bit_in_one_launch(ti_cpu, monkeypatch, capacity):
+    """``PairBatch.listed`` (CUDA's default): the derivatives at new positions in one launch whose active list is
+    ordered on the device between its passes give the two passes' active pairs, distances, regions, gradients, energies
+    and Hessians bit for bit (the CPU's serial sums), and the pair penalties' energies by copy from that launch; with
+    room for fewer active pairs than there are (``overflow``), a second launch with room for all."""
+    from sim_core.energies.contact import batch_kernel as contact_batch
+    from sim_core.energies.contact import listed_kernel
+    from sim_core.ti_kernels.copy_vectors import CopySums
+
+    x, linked, _ = _potentials()
+    _, twins, _ = _potentials()
+    y = x + 0.1 * EPS * np.random.default_rng(26).normal(size=x.shape)
+    copy_of_vertex = np.random.default_rng(27).integers(0, 4, size=len(x))
+    monkeypatch.setattr(contact_batch.PairBatch, "two_pass", True)
+    expected = [(pot.gradient(y), pot.energy(y), pot.hessian(y, "none"), pot.active_mask(y),
+                 workspace_of(pot).get(pot, "evaluation").distances, pot.copy_energies(y, copy_of_vertex, 4))
+                for pot in twins]  # the two passes
+    monkeypatch.setattr(contact_batch.PairBatch, "listed", True)
+    if capacity is not None:
+        linked[0]._batch._found_rows = capacity
+    calls = _launches(monkeypatch)
+    listed_calls = []
+    kernel = listed_kernel._listed_kernel
+    monkeypatch.setattr(listed_kernel, "_listed_kernel", lambda *a: (listed_calls.append(a[6]), kernel(*a)))
+    for pot in linked:
+        pot.gradient(y)
+    assert calls == [] and len(listed_calls) == (1 if capacity is None else 2)
+    sums = CopySums(copy_of_vertex, 4)
+    for pot, (grad, energy, hess, mask, distances, split) in zip(linked, expected):
+        got = workspace_of(pot).get(pot, "evaluation").distances
+        assert np.count_nonzero(mask) > 0
+        np.testing.assert_array_equal(pot.active_mask(y), mask)
+        np.testing.assert_array_equal(got.d, distances.d)
+        np.testing.assert_array_equal(got.region, distances.region)
+        assert len(np.unique(got.region)) > 3
+        np.testing.assert_array_equal(pot.gradient(y), grad)
+        assert pot.energy(y) == energy
+        np.testing.assert_array_equal(pot.hessian(y, "none").blocks, hess.blocks)
+        np.testing.assert_array_equal(pot.hessian(y, "none").vertices, hess.vertices)
+        sums.zero()
+        assert pot.add_copy_energies_on_device(y, None, copy_of_vertex, sums)
+        np.testing.assert_allclose(sums.read(), split, rtol=1e-13, atol=0.0)
+    assert calls == [] and len(listed_calls) == (1 if capacity is None else 2)  # all kept from the launch
