@@ -147,3 +147,28 @@ def test_the_device_terms_add_their_copy_energies_into_one_sum_read_once(model, 
     assert set(seen) == {"LumpedQuadratic", "TiLaggedFriction", "FusedElastic", "TiVertexTriangleContact",
                          "TiEdgeEdgeContact"}
     assert touching["TiVertexTriangleContact"] > 0 and touching["TiEdgeEdgeContact"] > 0  # the kernels summed energies
+
+
+def test_the_listed_pair_launch_gives_a_lockstep_step_the_default_states(model, monkeypatch):
+    """With the device CG's iterates, the pair batch's derivatives at each new trial point in one launch whose active
+    list stays on the device (``PairBatch.listed``, CUDA's default, with its two passes) give the Newton iterations and
+    backtracks of the default launches and their states to round-off (two equal batches of the device CG in one
+    process already differ by up to 1e-16 m), every trial point through that launch, and the pair penalties' per-copy
+    energies summed from it."""
+    from sim_core.energies.contact import batch_kernel, listed_kernel
+    from sim_core.energies.contact.kernel import _Batched
+
+    default, infos = _run(model, DEVICE_CG)
+    launches, added = [], []
+    kernel = listed_kernel._listed_kernel
+    monkeypatch.setattr(listed_kernel, "_listed_kernel", lambda *a: (launches.append(a[4]), kernel(*a)))
+    add = _Batched.add_copy_energies_on_device
+    monkeypatch.setattr(_Batched, "add_copy_energies_on_device",
+                        lambda self, *a: added.append(add(self, *a)) or added[-1])
+    monkeypatch.setattr(batch_kernel.PairBatch, "two_pass", True)
+    monkeypatch.setattr(batch_kernel.PairBatch, "listed", True)
+    listed, infos_listed = _run(model, DEVICE_CG)
+    assert infos_listed == infos and sum(bt for row in infos for _, bt in row) > 0
+    assert len(launches) >= sum(max(it for it, _ in row) for row in infos) and added and all(added)  # a trial point each
+    for a, b in zip(default.states, listed.states):
+        np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-14)
