@@ -26,6 +26,11 @@ once, positions copied in). The kernel sees the pairs' own vertices only (``uniq
 positions gathered and the summed gradients spread back on the host): on CUDA the positions and the summed
 gradients cross to the device and back at each launch, and a Forming step's pairs name a fraction of its vertices.
 
+Where arrays cross to a GPU, derivatives at new positions take two passes (:attr:`PairBatch.two_pass`) made in one
+launch whose list of active pairs stays on the device between them (:attr:`PairBatch.listed`,
+:mod:`sim_core.energies.contact.listed_kernel`), and the pair penalties' energies by copy are summed where the launch
+left the distances (:mod:`sim_core.energies.contact.copy_energy_kernel`).
+
 When both potentials already keep the distances of ``x`` (the energy of the accepted line-search
 point, the next Newton iterate), the derivatives are computed for their active pairs only. The
 kernel calls the same Taichi functions as the separate kernels, so every distance, gradient and
@@ -51,6 +56,7 @@ from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device, rows_on_device
+from sim_core.ti_kernels.copy_vectors import CopySums
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import positions_on_device, upload
@@ -219,7 +225,7 @@ class PairBatch:
     two_pass: bool | None = None
     """Derivatives of an unevaluated ``x`` in two launches (distances of every pair, then derivatives of the
     active ones: less data through the launch, where arrays cross to a GPU and back) or one (all pairs);
-    None: two on CUDA. The results are the same."""
+    None: two on CUDA (with :attr:`listed` both passes in one launch). The results are the same."""
 
     device_hessian: bool | None = None
     """Derivatives of the known active pairs (the second launch of :attr:`two_pass`) written into a new Taichi
@@ -723,3 +729,5 @@ def compile_kernels() -> None:
         batch.evaluate(x + 1e-5, derivatives)
     batch.packed, batch.two_pass, batch.listed = False, True, True  # and the listed one
     batch.evaluate(x + 2e-5, True)
+    sums = CopySums(np.zeros(len(x), dtype=np.int64), 1)  # the penalties by copy from its launch
+    vt.add_copy_energies_on_device(x + 2e-5, None, sums.copy_of_vertex, sums)
