@@ -78,12 +78,12 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
     on the CPU's serial loops), their count ``a`` in ``active[0, 0]`` (counted in ``active_count[0]``, zeroed
     first): the list and its length in one array, read back in one copy; with
     ``derivatives`` the distance gradient
-    row ``grad[i]`` and the penalty Hessian row ``hess[i]`` (:func:`~sim_core.energies.contact.pair_measure._penalty_hessian`, with the
+    row ``grad[i]`` and the penalty Hessian row ``hess[i]`` (:func:`pair_measure._penalty_hessian`, with the
     ``eps`` and ``stiffness`` of their kind) of the pairs with ``d < eps`` (the other rows are left
     as they are), and their penalty gradients ``k_c (d - eps) grad d`` summed per vertex into
     ``gradients`` (``(2 n, 3)``: rows ``v`` for the vertex-triangle pairs, ``n + v`` for the edge-edge
-    pairs, ``n = x.shape[0]``; zeroed first, sums in pair order: :func:`~sim_core.energies.contact.pair_measure._scatter_penalty_gradient`).
-    A pair that the bounds of :func:`~sim_core.energies.contact.pair_measure._may_touch` rule out gets ``d[i] = inf`` and region -1
+    pairs, ``n = x.shape[0]``; zeroed first, sums in pair order: :func:`pair_measure._scatter_penalty_gradient`).
+    A pair that the bounds of :func:`pair_measure._may_touch` rule out gets ``d[i] = inf`` and region -1
     (farther than ``eps``: not active, as its distance would say). ``derivatives`` (0 or 1) and the
     pair kind are runtime values: one compiled kernel for every request. With ``pack_region`` (and ``derivatives``)
     the regions are also written, as floats, after the sums: ``gradients[2 n + i // 3, i % 3] = region[i]`` (the

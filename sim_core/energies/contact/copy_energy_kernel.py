@@ -25,9 +25,9 @@ _I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 def _penalty_energy_by_copy(d: _F64_1, rows: _I32_1, vertices: _I32_2, own_copy: _I32_1, start: ti.i32, stop: ti.i32,
                             eps: ti.f64, half_stiffness: ti.f64, sums: _F64_1):
     """``sums[c] += k_c / 2 (d[i] - eps)^2`` for the launch rows ``start <= i < stop`` with ``d[i] < eps`` (``d``
-    ``(>= stop,)`` m; an unmeasured pair's ``inf`` adds nothing), ``c = own_copy[vertices[rows[i], 0]]``: the copy of the
-    pair's first vertex (``rows`` the launch rows' layout rows, ``vertices`` the layout's ``local`` ``(r, 4)`` into the
-    batch's vertices ``own``, ``own_copy`` ``(u,)`` their copies)."""
+    ``(>= stop,)`` m; an unmeasured pair's ``inf`` adds nothing), ``c = own_copy[vertices[rows[i], 0]]``: the copy of
+    the pair's first vertex (``rows`` the launch rows' layout rows, ``vertices`` the layout's ``local`` ``(r, 4)`` into
+    the batch's vertices ``own``, ``own_copy`` ``(u,)`` their copies)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(start, stop):
         gap = d[i] - eps

@@ -133,7 +133,8 @@ TAICHI_CAPABILITIES = {
                    "sim_core.energies.neohookean.fused_kernel.FusedStableNeoHookean",
                    "sim_core.fused_elastic.FusedElastic", "sim_core.fused_elastic._ReferencePart"},
     # the line search's per-copy energies added where the kernels run, read once (copy_vectors.CopySums)
-    DeviceCopyEnergies: {"sim_core.energies.contact.kernel._Batched", "sim_core.energies.contact.kernel.TiEdgeEdgeContact",
+    DeviceCopyEnergies: {"sim_core.energies.contact.kernel._Batched",
+                         "sim_core.energies.contact.kernel.TiEdgeEdgeContact",
                          "sim_core.energies.contact.kernel.TiVertexTriangleContact",
                          "sim_core.energies.friction.kernel.TiLaggedFriction", "sim_core.fused_elastic.FusedElastic"},
 }
