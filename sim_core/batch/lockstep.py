@@ -158,7 +158,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         scene: the stacked scene.
         held: copies held fixed in the current attempt, shape ``(B,)`` bool.
         subset_projection: how the projected retry projects the contact pair blocks of the retried copies:
-            ``"jacobi"`` on ``taichi-cuda`` (:func:`projected_subset_blocks`), None elsewhere (the terms' own
+            :data:`~sim_core.ti_kernels.block_projection.DEVICE_METHOD` on ``taichi-cuda``
+            (:func:`projected_subset_blocks`), None elsewhere (the terms' own
             ``hessian_of_vertices``).
         last_stacked_info: the stacked :class:`StepInfo` of the last step (iterations of the slowest
             copy, factorisations, times), or None.
@@ -192,9 +193,13 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             self._block_rows = BlockRowsProjector()  # the projected retry's pair blocks (projected_subset_blocks)
         self.scene = scene
         self._boundary = StackedBoundary(scene.model, scene.copies, scene.effector_names)
-        # the projected retry's contact pair blocks by the Jacobi kernel on the GPU (LAPACK on the host took
-        # 68 ms a term at B = 256); None: the terms' own projection
-        self.subset_projection = "jacobi" if self.backend == "taichi-cuda" else None
+        # the projected retry's contact pair blocks by the device's projection kernel on the GPU (LAPACK on the host
+        # took 68 ms a term at B = 256); None: the terms' own projection
+        self.subset_projection = None
+        if self.backend == "taichi-cuda":
+            from sim_core.ti_kernels.block_projection import DEVICE_METHOD  # Taichi kernels: a Taichi backend
+
+            self.subset_projection = DEVICE_METHOD
         self.held = np.zeros(scene.copies, dtype=bool)
         self._dofs = scene.dof_index  # (B, 3n)
         self._host_vectors = HostIterates(scene.index)  # per-copy sums and maxima over the stacked NumPy arrays
