@@ -653,14 +653,16 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
 
         fused = step.fused
         pattern = fused.pattern
+        # the contact and friction blocks first: a projected retry's pair blocks send their rows to the device before
+        # the projected elastic Hessian's kernels are queued, so that the copy does not wait for those
+        blocks = VertexBlocks.from_element_blocks(
+            [self._term_hessian(p, x, projection, vertices) for p in dynamic_terms], step.free)
         values = (fused.hessian_values_device(x) if projection == "none"  # the values where the kernels wrote them
                   else fused.projected_hessian_values_device(x, projection, vertices, closed=True))
         if values is None:
             values = (fused.hessian_values(x) if projection == "none"
                       else fused.projected_hessian_values(x, projection, vertices))
         indptr, indices = pattern.csr()  # the same objects for the pattern: they travel once
-        blocks = VertexBlocks.from_element_blocks(
-            [self._term_hessian(p, x, projection, vertices) for p in dynamic_terms], step.free)
         return (indptr, indices, values), blocks, (pattern.diag_slots, step.diag, pattern.fixed_diag_slots)
 
     def _term_hessian(self, term, x: np.ndarray, projection: str, vertices: np.ndarray | None):

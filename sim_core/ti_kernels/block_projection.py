@@ -412,6 +412,19 @@ def marked_rows(elements: np.ndarray, vertices: np.ndarray | None, closed: bool 
     return np.flatnonzero(hit).astype(np.int32)
 
 
+def projected_rows(kept: dict, elements: np.ndarray, vertices: np.ndarray | None, closed: bool = False) -> np.ndarray:
+    """:func:`marked_rows` of ``elements`` for the mask ``vertices``, kept in ``kept`` (a fused part's device dict) for
+    the same ``elements`` and ``vertices`` objects and ``closed``: the rows a part staged before the projection's
+    kernels were queued (its ``stage_projected_rows``) are the same object at its ``add_projected_on_device``, whose
+    uploads of them (:func:`~sim_core.ti_kernels.buffers.rows_on_device`) then find them on the device."""
+    entry = kept.get("projected_rows")
+    if entry is not None and entry[0] is elements and entry[1] is vertices and entry[2] == closed:
+        return entry[3]
+    rows = marked_rows(elements, vertices, closed)
+    kept["projected_rows"] = (elements, vertices, closed, rows)
+    return rows
+
+
 def add_projected_where_run(part, x: np.ndarray, projection: str, values: np.ndarray,
                             vertices: np.ndarray | None = None) -> None:
     """``values`` ``(pattern.keys.size,)`` (host) += a fused part's projected blocks made by its kernels
@@ -504,6 +517,13 @@ class TranslationFreeProjector(KeptArrays):
             linalg.projection_code(projection)
             return
         add_blocks(self.project(blocks, projection), slots, values)
+
+    def stage_rows(self, rows: np.ndarray) -> None:
+        """Send ``rows`` (int32 ``(c,)``) to the device now, before the kernels of a projection are queued, so that
+        :meth:`add_projected_rows` of the same rows copies nothing (a synchronous copy waits for every kernel queued
+        before it)."""
+        if rows.shape[0]:
+            self._kept("rows", rows.shape, ti.i32, rows)
 
     def add_projected_rows(self, blocks, projection: str, upper, rows: np.ndarray, values,
                            method: str | None = None) -> None:
