@@ -55,8 +55,8 @@ def test_the_device_projection_kernels_are_compiled_with_the_step_kernels(ti_cpu
 
     monkeypatch.setattr(bp, "current_arch", lambda: "cuda")
     bp.compile_kernels()
-    for kernel in (bp.jacobi_project_blocks, bp.reduce_block_rows, bp.expand_add_upper_rows, bp.add_upper_block_rows,
-                   bp._gather_block_columns, bp._block_rows):
+    for kernel in (bp.jacobi_project_blocks, bp.householder_project_blocks, bp.reduce_block_rows,
+                   bp.expand_add_upper_rows, bp.add_upper_block_rows, bp._gather_block_columns, bp._block_rows):
         assert kernel._primal.compiled_kernels
     calls = []
     monkeypatch.setattr(bp, "compile_kernels", lambda: calls.append(1))
