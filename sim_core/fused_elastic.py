@@ -649,9 +649,10 @@ class FusedElastic:
         (:meth:`_on_device`: CUDA, every part a fused kernel part, none offloaded). The positions go up once; each
         part adds its projected blocks there (``add_projected_on_device``), through the packed upper slot tables of
         the exact Hessian, with no block and no partial sum crossing to the host; every part's element rows are sent
-        first (``stage_projected_rows``), so that no synchronous copy between the kernels waits for them. ``closed``: the caller's promise
-        that ``vertices`` is closed under every part's elements (whole copies of a stacked scene), so that each part
-        finds its marked elements by their first vertex (:func:`~sim_core.ti_kernels.block_projection.marked_rows`).
+        first (``stage_projected_rows``), so that no synchronous copy between the kernels waits for them. ``closed``:
+        the caller's promise that ``vertices`` is closed under every part's elements (whole copies of a stacked scene),
+        so that each part finds its marked elements by their first vertex
+        (:func:`~sim_core.ti_kernels.block_projection.marked_rows`).
 
         Raises:
             RuntimeError: :meth:`bind` was not called.

@@ -4,8 +4,8 @@ A lockstep batch retries the copies whose exact Newton matrix the batched CG fou
 one (:meth:`sim_core.batch.lockstep.LockstepSolver._direction_pcg`): of the contact pair penalties it needs the
 projected blocks of the retried copies' pairs only. Their projection is per block (``project_psd`` of each exact
 ``(12, 12)`` block), so it is made here for those blocks alone, by a projection kernel (Householder-QL or cyclic
-Jacobi, :data:`~sim_core.ti_kernels.block_projection.DEVICE_KERNELS`) on the GPU, and, where the pair kernel left the exact blocks on the
-device (:class:`~sim_core.energies.base.DeviceHessian`), without any block crossing to the host.
+Jacobi, :data:`~sim_core.ti_kernels.block_projection.DEVICE_KERNELS`) on the GPU, and, where the pair kernel left the
+exact blocks on the device (:class:`~sim_core.energies.base.DeviceHessian`), without any block crossing to the host.
 """
 
 from __future__ import annotations

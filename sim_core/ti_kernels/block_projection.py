@@ -61,7 +61,7 @@ import numpy as np
 from sim_core.slot_translation import joined
 from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import DeviceArray, on_device
+from sim_core.ti_kernels.buffers import DeviceArray, on_device, rows_on_device
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.householder_projection import householder_project_blocks
 from sim_core.ti_kernels.launch import fast_kernel
@@ -425,6 +425,21 @@ def projected_rows(kept: dict, elements: np.ndarray, vertices: np.ndarray | None
     return rows
 
 
+def stage_projected_rows(kept: dict, elements: np.ndarray, vertices: np.ndarray | None, closed: bool, name: str,
+                         projector: "TranslationFreeProjector | None" = None) -> None:
+    """A fused part's ``stage_projected_rows``: its :func:`projected_rows` of ``elements`` for ``vertices`` and
+    ``closed`` sent to the device now, into its kept array ``name`` (:func:`~sim_core.ti_kernels.buffers.rows_on_device`)
+    and, with ``projector``, into the projector's (:meth:`TranslationFreeProjector.stage_rows`), before the projection's
+    kernels are queued (:meth:`sim_core.fused_elastic.FusedElastic.projected_hessian_values_device`): its
+    ``add_projected_on_device`` then copies nothing (a synchronous copy waits for every kernel queued before it)."""
+    if not elements.shape[0]:
+        return
+    rows = projected_rows(kept, elements, vertices, closed)
+    rows_on_device(kept, name, rows)
+    if projector is not None:
+        projector.stage_rows(rows)
+
+
 def add_projected_where_run(part, x: np.ndarray, projection: str, values: np.ndarray,
                             vertices: np.ndarray | None = None) -> None:
     """``values`` ``(pattern.keys.size,)`` (host) += a fused part's projected blocks made by its kernels
@@ -532,9 +547,9 @@ class TranslationFreeProjector(KeptArrays):
         ``(k, 3 m (3 m + 1) / 2)``, :func:`upper_slot_table` of the slot map): the reduction ``B^T H B``
         (:func:`reduce_block_rows`) and the expansion and scatter of the upper triangles
         (:func:`expand_add_upper_rows`) as kernels; the reduced blocks' projection by a kernel of
-        :data:`DEVICE_KERNELS` where they are, or on the host (:func:`project_reduced_blocks` with LAPACK: the reduced blocks downloaded,
-        projected and uploaded, two copies of ``c (3 m - 3)^2`` float64). ``blocks`` ``(k, 3 m, 3 m)``, ``values``:
-        ndarrays or NumPy arrays; the sums equal :meth:`add_projected`'s to round-off. The reduced blocks' arrays
+        :data:`DEVICE_KERNELS` where they are, or on the host (:func:`project_reduced_blocks` with LAPACK: the reduced
+        blocks downloaded, projected and uploaded, two copies of ``c (3 m - 3)^2`` float64). ``blocks``
+        ``(k, 3 m, 3 m)``, ``values``: ndarrays or NumPy arrays; the sums equal :meth:`add_projected`'s to round-off. The reduced blocks' arrays
         are kept and grow with the largest ``c`` asked for (no allocation while the count does not grow).
 
         Args:
@@ -625,8 +640,9 @@ class BlockRowsProjector(KeptArrays):
 
 def compile_kernels() -> None:
     """On CUDA, JIT-compile (or load from Taichi's offline cache) the device path's kernels on one-block Taichi
-    ndarrays: the projections (:data:`DEVICE_KERNELS`), the reduction and expansion of :meth:`TranslationFreeProjector.add_projected_rows`,
-    the upper-triangle scatter and :class:`BlockRowsProjector`'s gathers; nothing on other archs (which take them
+    ndarrays: the projections (:data:`DEVICE_KERNELS`), the reduction and expansion of
+    :meth:`TranslationFreeProjector.add_projected_rows`, the upper-triangle scatter and :class:`BlockRowsProjector`'s
+    gathers; nothing on other archs (which take them
     only in tests) or before :func:`sim_core.ti_backend.init_backend`. One environment's projection runs on the host
     (:data:`HOST_PROJECTION_MAX_BLOCKS`), so without this a lockstep batch compiles them at its first projected
     iteration (in its timed steps)."""

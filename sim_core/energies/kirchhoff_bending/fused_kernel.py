@@ -31,7 +31,7 @@ from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.worker_recipe import part_recipe
 from sim_core.ti_kernels.block_projection import (TranslationFreeProjector, add_projected_where_run, add_upper_entry,
-                                                  SlotTables, marked_rows, projected_rows,
+                                                  SlotTables, marked_rows, projected_rows, stage_projected_rows,
                                                   upper_index)
 from sim_core.energies.hinge_bending.kernel import (_dihedral_angle, _hinge_positions, _theta_gradient, _theta_hessian,
                                          _theta_hessian_unsymmetrized)
@@ -383,13 +383,9 @@ class FusedKirchhoffBending:
         self._projector.add_projected(blocks, projection, slots, values)
 
     def stage_projected_rows(self, vertices: np.ndarray | None = None, closed: bool = False) -> None:
-        """The rows :meth:`add_projected_on_device` takes for ``vertices`` and ``closed``, sent to the device now (before
-        the projection's kernels are queued: :meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values_device`),
-        so that the call copies nothing."""
-        if self._hinges.shape[0]:
-            rows = projected_rows(self._device, self.vertices, vertices, closed)
-            rows_on_device(self._device, "triangle_rows", rows)
-            self._projector.stage_rows(rows)
+        """The rows :meth:`add_projected_on_device` takes, sent before the projection's kernels are queued
+        (:func:`~sim_core.ti_kernels.block_projection.stage_projected_rows`)."""
+        stage_projected_rows(self._device, self.vertices, vertices, closed, "triangle_rows", self._projector)
 
     def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
                                 closed: bool = False) -> None:

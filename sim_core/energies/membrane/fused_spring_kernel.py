@@ -45,7 +45,8 @@ from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.worker_recipe import part_recipe
 from sim_core.ti_kernels.block_projection import (
-    TranslationFreeProjector, add_projected_where_run, add_upper_entry, BoundSlotTables, marked_rows, projected_rows, upper_index,
+    TranslationFreeProjector, add_projected_where_run, add_upper_entry, BoundSlotTables, marked_rows, projected_rows,
+    stage_projected_rows, upper_index,
 )
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -342,13 +343,9 @@ class FusedSpringMembrane(BoundSlotTables):
         add_projected_where_run(self, x, projection, values, vertices)
 
     def stage_projected_rows(self, vertices: np.ndarray | None = None, closed: bool = False) -> None:
-        """The rows :meth:`add_projected_on_device` takes for ``vertices`` and ``closed``, sent to the device now (before
-        the projection's kernels are queued: :meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values_device`),
-        so that the call copies nothing."""
-        if self._triangles.shape[0]:
-            rows = projected_rows(self._device, self._triangles, vertices, closed)
-            rows_on_device(self._device, "triangle_rows", rows)
-            self._projector.stage_rows(rows)
+        """The rows :meth:`add_projected_on_device` takes, sent before the projection's kernels are queued
+        (:func:`~sim_core.ti_kernels.block_projection.stage_projected_rows`)."""
+        stage_projected_rows(self._device, self._triangles, vertices, closed, "triangle_rows", self._projector)
 
     def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
                                 closed: bool = False) -> None:

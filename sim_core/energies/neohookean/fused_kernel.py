@@ -35,7 +35,7 @@ from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_projected_where_run,
                                                   add_upper_block_rows, add_upper_entry, BoundSlotTables,
-                                                  marked_rows, projected_rows, upper_index)
+                                                  marked_rows, projected_rows, stage_projected_rows, upper_index)
 from sim_core.ti_kernels.buffers import on_device, rows_on_device
 from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import summing_kernel
@@ -310,11 +310,9 @@ class FusedStableNeoHookean(BoundSlotTables):
             add_block_rows(blocks, self._slots, rows, rows.size, values)
 
     def stage_projected_rows(self, vertices: np.ndarray | None = None, closed: bool = False) -> None:
-        """The rows :meth:`add_projected_on_device` takes for ``vertices`` and ``closed``, sent to the device now (before
-        the projection's kernels are queued: :meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values_device`),
-        so that the call copies nothing."""
-        if self._tets.shape[0]:
-            rows_on_device(self._device, "rows", projected_rows(self._device, self._tets, vertices, closed))
+        """The rows :meth:`add_projected_on_device` takes, sent before the projection's kernels are queued
+        (:func:`~sim_core.ti_kernels.block_projection.stage_projected_rows`)."""
+        stage_projected_rows(self._device, self._tets, vertices, closed, "rows")
 
     def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
                                 closed: bool = False) -> None:
@@ -332,7 +330,7 @@ class FusedStableNeoHookean(BoundSlotTables):
         code = projection_code(projection)
         if self._tets.shape[0] == 0:
             return
-        rows = projected_rows(self._device, self._tets, vertices, closed)  # with vertices: the tets touching a marked one
+        rows = projected_rows(self._device, self._tets, vertices, closed)  # with vertices: the tets touching one
         if rows.size == 0:
             return
         p = self.potential

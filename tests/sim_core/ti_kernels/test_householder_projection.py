@@ -10,8 +10,8 @@ import pytest
 from sim_core.ti_kernels.block_projection import project_reduced_blocks  # noqa: E402 (Taichi imported here)
 
 
-def _blocks(n: int) -> np.ndarray:
-    """40 symmetric ``(n, n)`` blocks: indefinite, definite (0-7), rank-deficient, diagonal, singular PSD, definite
+def symmetric_blocks(n: int) -> np.ndarray:
+    """40 symmetric ``(n, n)`` blocks (the projection kernels' tests, here and in test_jacobi_projection): indefinite, definite (0-7), rank-deficient, diagonal, singular PSD, definite
     with its smallest eigenvalue near round-off, indefinite by 1e-6, a repeated negative eigenvalue, a zero block."""
     rng = np.random.default_rng(100 + n)
     a = rng.normal(size=(40, n, n))
@@ -32,7 +32,7 @@ def _blocks(n: int) -> np.ndarray:
 @pytest.mark.parametrize("n", [3, 6, 9, 12, 15])
 @pytest.mark.parametrize("projection", ["clamp", "abs"])
 def test_householder_projection_matches_lapack_and_jacobi(ti_cpu, n, projection):
-    blocks = _blocks(n)
+    blocks = symmetric_blocks(n)
     want = project_reduced_blocks(blocks.copy(), projection, method="lapack")
     jacobi = project_reduced_blocks(blocks.copy(), projection, method="jacobi")
     got = project_reduced_blocks(blocks.copy(), projection, method="householder")
@@ -51,7 +51,7 @@ def test_householder_projection_matches_lapack_and_jacobi(ti_cpu, n, projection)
 
 
 def test_householder_projection_keeps_a_nan_block_and_projects_the_others(ti_cpu):
-    blocks = _blocks(6)[:16]
+    blocks = symmetric_blocks(6)[:16]
     blocks[3, 1, 2] = blocks[3, 2, 1] = np.nan
     got = project_reduced_blocks(blocks.copy(), "clamp", method="householder")
     want = project_reduced_blocks(np.delete(blocks, 3, axis=0), "clamp", method="lapack")
