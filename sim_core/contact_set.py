@@ -712,10 +712,13 @@ class ContactSet:
         """:meth:`friction` on the Taichi backend when only pair contacts touch: the frames and tangent
         bases of the active pairs of both kinds from one launch
         (:func:`sim_core.energies.contact.setup_kernel.friction_frames`; the values of the pair potentials'
-        ``contact_frames`` and of ``tangent_basis``, bit for bit), rows in the same order."""
+        ``contact_frames`` and of ``tangent_basis``, bit for bit), rows in the same order; on CUDA the launch reads
+        ``x^n`` where the solver's terms hold it on the device (:func:`~sim_core.ti_kernels.transfer.positions_on_device`),
+        if they do, instead of sending it."""
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.energies.contact.setup_kernel import friction_frames
         from sim_core.energies.friction.kernel import TiLaggedFriction
+        from sim_core.ti_kernels.transfer import positions_on_device
 
         pots = (vt, ee)
         rows = [pot.active_distances(x_n) for pot in pots]
@@ -728,7 +731,10 @@ class ContactSet:
         if not np.any(mu > 0):
             return None
         sides = np.concatenate([pot.sides[active] for pot, (active, _) in zip(pots, rows)])
-        weights, normal, tangent = friction_frames(x_n, vertices, sides, split)
+        # x^n read where the solver's terms hold it on the device, if they do (not sent again); asked of frozen
+        # positions only, which are matched by identity (other positions by their bytes: 14 MB at 1024 copies)
+        x_device = positions_on_device(self.workspace, x_n) if _frozen(x_n) else None
+        weights, normal, tangent = friction_frames(x_n, vertices, sides, split, x_device)
         lam = np.concatenate([pot.stiffness * (pot.eps - d) for pot, (_, d) in zip(pots, rows)])
         friction = TiLaggedFriction(vertices, weights, tangent, lam, mu, x_n, self.model.contact.eps_v, dt)
         friction.workspace = self.workspace

@@ -398,7 +398,7 @@ def tangent_basis(normal: np.ndarray) -> np.ndarray:
     return tangent[:k].reshape(k, 3, 2).copy()
 
 
-def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, split: int
+def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, split: int, x_device=None
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest-point weights, unit normals and tangent bases of vertex-triangle and edge-edge pairs in
     one launch: :func:`contact_frames` of each kind, then :func:`tangent_basis` of the normals (the same
@@ -410,6 +410,10 @@ def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, spli
             ``[a0, a1, b0, b1]`` (edge-edge), global vertex indices, shape ``(k, 4)``.
         sides: the pairs' step sides (+1 / -1, 0 unsigned), shape ``(k,)``.
         split: number of vertex-triangle rows, ``0 <= split <= k``.
+        x_device: ``x`` as the float64 Taichi ndarray ``(n, 3)`` where another term of the solver holds it on the
+            device (:func:`~sim_core.ti_kernels.transfer.positions_on_device`), read there on CUDA instead of ``x``
+            being sent (a stacked batch's positions: 14 MB at 1024 Forming copies, a new array every step); None, or
+            off CUDA: ``x`` is read.
 
     Returns:
         ``(weights (k, 4), normal (k, 3), tangent (k, 3, 2))``.
@@ -424,8 +428,9 @@ def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, spli
     side = _ARRAYS.rows("side", k)
     side[:k] = np.reshape(sides, -1)
     frames = _ARRAYS.rows("frames", k, (13,))
-    _device_launch(_friction_frames_kernel, (_positions(x), _kept_indices("pairs", vertices), side, k,
-                                             int(split), frames), outputs={5: k})
+    positions = x_device if x_device is not None and current_arch() == "cuda" else _positions(x)
+    _device_launch(_friction_frames_kernel, (positions, _kept_indices("pairs", vertices), side, k, int(split), frames),
+                   outputs={5: k})
     return frames[:k, :4].copy(), frames[:k, 4:7].copy(), frames[:k, 7:].reshape(k, 3, 2).copy()
 
 

@@ -265,6 +265,37 @@ def test_friction_frames_equal_the_frames_of_each_kind_and_their_tangents_bit_fo
     assert [a.shape for a in empty] == [(0, 4), (0, 3), (0, 3, 2)]
 
 
+def test_friction_frames_read_positions_held_on_the_device_as_they_are(ti_cpu, monkeypatch):
+    """With ``x_device`` (the positions where the solver's terms hold them on the device) the frames launch reads that
+    array, through CUDA's launch path emulated on the CPU arch, instead of sending ``x``: the same frames bit for bit,
+    and no device copy of the positions made for the launch; off CUDA ``x`` itself is read."""
+    from sim_core import ti_backend
+    from sim_core.energies.contact import setup_kernel as contact_setup
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.transfer import upload
+
+    x, vertices = _batch(11, 300)
+    sides = np.random.default_rng(3).choice([-1.0, 0.0, 1.0], size=len(vertices))
+    x.flags.writeable = False  # frozen, as a lockstep batch's x^n
+    want = contact_setup.friction_frames(x, vertices, sides, 120)
+    held = upload(ti.ndarray(ti.f64, x.shape), np.ascontiguousarray(x))
+    stale = ti.ndarray(ti.f64, x.shape)  # zeros: what a launch reading the device array would see
+    for got, ref in zip(contact_setup.friction_frames(x, vertices, sides, 120, stale), want):  # off CUDA: x read
+        np.testing.assert_array_equal(got, ref)
+    for module in (contact_setup, ti_backend):
+        monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    kept = contact_setup._ARRAYS.device()
+
+    def positions_copies() -> set:
+        return {k for k in kept if k.endswith(":_friction_frames_kernel") and k.startswith(("0:", "frozen_x:"))}
+
+    before = positions_copies()
+    for got, ref in zip(contact_setup.friction_frames(x, vertices, sides, 120, held), want):
+        np.testing.assert_array_equal(got, ref)
+    assert positions_copies() == before  # the positions were not copied for the launch
+    assert not np.array_equal(contact_setup.friction_frames(x, vertices, sides, 120, stale)[0], want[0])
+
+
 def test_the_contact_sets_one_launch_friction_equals_the_frames_of_its_potentials(ti_cpu):
     """On the Taichi backend the contact set builds its friction from one set-up launch: the rows, row
     sources, normal forces, coefficients, frames and tangents of the pair potentials' contact_frames
