@@ -149,7 +149,7 @@ def _positions(x: np.ndarray) -> np.ndarray:
     return _ARRAYS.copy_of("x", x)
 
 
-def _positions_or_held(x: np.ndarray, x_device) -> np.ndarray:
+def _positions_or_held(x: np.ndarray, x_device):
     """The positions argument of a launch: on CUDA ``x_device`` where given (``x`` where the solver's terms hold it on
     the device, :func:`~sim_core.ti_kernels.transfer.positions_on_device`: read there, not sent), else
     :func:`_positions` of ``x``."""
