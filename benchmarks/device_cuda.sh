@@ -131,7 +131,7 @@ $KT/test_copy_energies.py $KT/test_compaction.py $KT/test_sorted_pairs.py $KT/te
 $KT/test_block_projection.py::test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_adds \
 $KT/test_block_projection.py::test_spring_membrane_projection_by_kernels_adds_what_the_host_path_adds \
 $KT/test_block_projection.py::test_the_blocks_of_listed_elements_are_the_whole_evaluations_to_the_bit \
-$KT/test_jacobi_projection.py $KT/test_projected_subset.py \
+$KT/test_jacobi_projection.py $KT/test_householder_projection.py $KT/test_backtrack.py $KT/test_projected_subset.py \
 $KT/test_contact_batch.py::test_packed_launches_equal_the_default_ones_bit_for_bit}
 bench() {  # bench NAME ARGS...: one benchmark process, its JSON lines kept
     local name=$1; shift
