@@ -29,7 +29,9 @@ gradients cross to the device and back at each launch, and a Forming step's pair
 Where arrays cross to a GPU, derivatives at new positions take two passes (:attr:`PairBatch.two_pass`) made in one
 launch whose list of active pairs stays on the device between them (:attr:`PairBatch.listed`,
 :mod:`sim_core.energies.contact.listed_kernel`), and the pair penalties' energies by copy are summed where the launch
-left the distances (:mod:`sim_core.energies.contact.copy_energy_kernel`).
+left the distances (:mod:`sim_core.energies.contact.copy_energy_kernel`). The Hessian, distance-gradient and
+gradient-sum rows a launch leaves on the device go into arrays that no evaluation holds any more
+(:func:`~sim_core.ti_kernels.buffers.unheld_rows`), so the launches of a Newton iteration allocate no device memory.
 
 When both potentials already keep the distances of ``x`` (the energy of the accepted line-search
 point, the next Newton iterate), the derivatives are computed for their active pairs only. The
