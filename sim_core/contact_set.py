@@ -496,13 +496,26 @@ class ContactSet:
         """The :class:`ListGeometry` of candidate lists ``lists`` at ``x`` ``(n, 3)`` (edge-edge pairs kept above
         :attr:`min_edge_sine`): on a Taichi backend one launch over the lists' kept int32 indices that copies back
         one int32 code a pair (:func:`sim_core.energies.contact.setup_kernel.pair_codes`), else from
-        :meth:`_pair_geometry`."""
+        :meth:`_pair_geometry`; on CUDA the launch reads ``x`` where the solver's terms hold it on the device
+        (:meth:`_held_positions`), if they do."""
         if not self.taichi:
             return ListGeometry.of(self._pair_geometry(x, lists.vt_vertices, lists.ee_vertices), self.min_edge_sine)
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.energies.contact.setup_kernel import pair_codes
 
-        return pair_codes(x, *lists.int32_vertices(), self.min_edge_sine, lists.device)
+        return pair_codes(x, *lists.int32_vertices(), self.min_edge_sine, lists.device, self._held_positions(x))
+
+    def _held_positions(self, x: np.ndarray):
+        """``x`` ``(n, 3)`` where the solver's terms hold it on the device (a float64 Taichi ndarray,
+        :func:`~sim_core.ti_kernels.transfer.positions_on_device`: the set-up kernels read it there instead of sending
+        it, 14 MB at 1024 Forming copies), or None; asked of frozen positions only, which are matched by identity
+        (others by their bytes)."""
+        if not (self.taichi and _frozen(x)):
+            return None
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
+        from sim_core.ti_kernels.transfer import positions_on_device
+
+        return positions_on_device(self.workspace, x)
 
     def _candidate_geometry(self, x: np.ndarray, vt: np.ndarray, ee: np.ndarray) -> ListGeometry:
         """:meth:`_list_geometry` of the candidate lists ``vt`` ``(p, 2)`` and ``ee`` ``(q, 2)`` at ``x`` ``(n, 3)``;
@@ -712,7 +725,8 @@ class ContactSet:
         """:meth:`friction` on the Taichi backend when only pair contacts touch: the frames and tangent
         bases of the active pairs of both kinds from one launch
         (:func:`sim_core.energies.contact.setup_kernel.friction_frames`; the values of the pair potentials'
-        ``contact_frames`` and of ``tangent_basis``, bit for bit), rows in the same order."""
+        ``contact_frames`` and of ``tangent_basis``, bit for bit), rows in the same order; on CUDA the launch reads
+        ``x^n`` where the solver's terms hold it on the device (:meth:`_held_positions`), if they do."""
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.energies.contact.setup_kernel import friction_frames
         from sim_core.energies.friction.kernel import TiLaggedFriction
@@ -728,7 +742,7 @@ class ContactSet:
         if not np.any(mu > 0):
             return None
         sides = np.concatenate([pot.sides[active] for pot, (active, _) in zip(pots, rows)])
-        weights, normal, tangent = friction_frames(x_n, vertices, sides, split)
+        weights, normal, tangent = friction_frames(x_n, vertices, sides, split, self._held_positions(x_n))
         lam = np.concatenate([pot.stiffness * (pot.eps - d) for pot, (_, d) in zip(pots, rows)])
         friction = TiLaggedFriction(vertices, weights, tangent, lam, mu, x_n, self.model.contact.eps_v, dt)
         friction.workspace = self.workspace

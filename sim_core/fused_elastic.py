@@ -648,9 +648,11 @@ class FusedElastic:
         :meth:`hessian_values_device` are kept apart), or None where the parts do not all run on device arrays
         (:meth:`_on_device`: CUDA, every part a fused kernel part, none offloaded). The positions go up once; each
         part adds its projected blocks there (``add_projected_on_device``), through the packed upper slot tables of
-        the exact Hessian, with no block and no partial sum crossing to the host. ``closed``: the caller's promise
-        that ``vertices`` is closed under every part's elements (whole copies of a stacked scene), so that each part
-        finds its marked elements by their first vertex (:func:`~sim_core.ti_kernels.block_projection.marked_rows`).
+        the exact Hessian, with no block and no partial sum crossing to the host; every part's element rows are sent
+        first (``stage_projected_rows``), so that no synchronous copy between the kernels waits for them. ``closed``:
+        the caller's promise that ``vertices`` is closed under every part's elements (whole copies of a stacked scene),
+        so that each part finds its marked elements by their first vertex
+        (:func:`~sim_core.ti_kernels.block_projection.marked_rows`).
 
         Raises:
             RuntimeError: :meth:`bind` was not called.
@@ -659,7 +661,8 @@ class FusedElastic:
         if self.pattern is None:
             raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
         if self.offloaded_part() is not None or not self._on_device() or not all(
-                hasattr(part, "add_projected_on_device") for part in self._parts):
+                hasattr(part, "add_projected_on_device") and hasattr(part, "stage_projected_rows")
+                for part in self._parts):
             return None
         from sim_core.ti_backend import ti  # Taichi only on a Taichi backend
         from sim_core.ti_kernels.linalg import projection_code
@@ -670,6 +673,9 @@ class FusedElastic:
         xd = self._upload_positions(np.ascontiguousarray(x, dtype=np.float64), positions_key(x), nnz)
         if self._projected_device is None or tuple(self._projected_device.shape) != (max(nnz, 1),):
             self._projected_device = ti.ndarray(ti.f64, shape=(max(nnz, 1),))
+        for part in self._parts:  # every part's rows sent before the first kernel: no copy waits for one
+            subset = getattr(part, "projects_subsets", False)
+            part.stage_projected_rows(vertices if subset else None, closed if subset else False)
         values = fill(self._projected_device, 0.0)
         for part in self._parts:
             if getattr(part, "projects_subsets", False):

@@ -158,7 +158,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         scene: the stacked scene.
         held: copies held fixed in the current attempt, shape ``(B,)`` bool.
         subset_projection: how the projected retry projects the contact pair blocks of the retried copies:
-            ``"jacobi"`` on ``taichi-cuda`` (:func:`projected_subset_blocks`), None elsewhere (the terms' own
+            :data:`~sim_core.ti_kernels.block_projection.DEVICE_METHOD` on ``taichi-cuda``
+            (:func:`projected_subset_blocks`), None elsewhere (the terms' own
             ``hessian_of_vertices``).
         last_stacked_info: the stacked :class:`StepInfo` of the last step (iterations of the slowest
             copy, factorisations, times), or None.
@@ -192,9 +193,13 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             self._block_rows = BlockRowsProjector()  # the projected retry's pair blocks (projected_subset_blocks)
         self.scene = scene
         self._boundary = StackedBoundary(scene.model, scene.copies, scene.effector_names)
-        # the projected retry's contact pair blocks by the Jacobi kernel on the GPU (LAPACK on the host took
-        # 68 ms a term at B = 256); None: the terms' own projection
-        self.subset_projection = "jacobi" if self.backend == "taichi-cuda" else None
+        # the projected retry's contact pair blocks by the device's projection kernel on the GPU (LAPACK on the host
+        # took 68 ms a term at B = 256); None: the terms' own projection
+        self.subset_projection = None
+        if self.backend == "taichi-cuda":
+            from sim_core.ti_kernels.block_projection import DEVICE_METHOD  # Taichi kernels: a Taichi backend
+
+            self.subset_projection = DEVICE_METHOD
         self.held = np.zeros(scene.copies, dtype=bool)
         self._dofs = scene.dof_index  # (B, 3n)
         self._host_vectors = HostIterates(scene.index)  # per-copy sums and maxima over the stacked NumPy arrays
@@ -648,14 +653,16 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
 
         fused = step.fused
         pattern = fused.pattern
+        # the contact and friction blocks first: a projected retry's pair blocks send their rows to the device before
+        # the projected elastic Hessian's kernels are queued, so that the copy does not wait for those
+        blocks = VertexBlocks.from_element_blocks(
+            [self._term_hessian(p, x, projection, vertices) for p in dynamic_terms], step.free)
         values = (fused.hessian_values_device(x) if projection == "none"  # the values where the kernels wrote them
                   else fused.projected_hessian_values_device(x, projection, vertices, closed=True))
         if values is None:
             values = (fused.hessian_values(x) if projection == "none"
                       else fused.projected_hessian_values(x, projection, vertices))
         indptr, indices = pattern.csr()  # the same objects for the pattern: they travel once
-        blocks = VertexBlocks.from_element_blocks(
-            [self._term_hessian(p, x, projection, vertices) for p in dynamic_terms], step.free)
         return (indptr, indices, values), blocks, (pattern.diag_slots, step.diag, pattern.fixed_diag_slots)
 
     def _term_hessian(self, term, x: np.ndarray, projection: str, vertices: np.ndarray | None):

@@ -61,8 +61,9 @@ import numpy as np
 from sim_core.slot_translation import joined
 from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import DeviceArray, on_device
+from sim_core.ti_kernels.buffers import DeviceArray, on_device, rows_on_device
 from sim_core.ti_kernels.device_copy import new_ndarray
+from sim_core.ti_kernels.householder_projection import householder_project_blocks
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download, fill, upload
 
@@ -285,6 +286,17 @@ def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, count: 
                     blocks[j, i, e] = acc
 
 
+DEVICE_KERNELS = {"jacobi": jacobi_project_blocks, "householder": householder_project_blocks}
+"""The projection kernels by method name (one block a thread, block index last; the same projection to round-off)."""
+
+DEVICE_METHOD = "householder"
+"""The kernel the device path projects with (:func:`project_reduced_blocks` on CUDA,
+:meth:`TranslationFreeProjector.add_projected_rows` beyond :data:`HOST_PROJECTION_MAX_BLOCKS` blocks,
+:class:`BlockRowsProjector`): Householder tridiagonalisation and implicit QL, ~4x fewer memory operations a 15 x 15
+block than the cyclic Jacobi sweeps (:mod:`sim_core.ti_kernels.householder_projection`; session 54, the retries'
+device time measured in docs/gpu_roofline.md)."""
+
+
 def project_reduced_blocks(blocks: np.ndarray, projection: str, method: str | None = None) -> np.ndarray:
     """PSD projection of symmetric blocks; only blocks with a negative eigenvalue are rebuilt.
 
@@ -293,7 +305,8 @@ def project_reduced_blocks(blocks: np.ndarray, projection: str, method: str | No
         projection: ``"clamp"`` (negative eigenvalues -> 0) or ``"abs"`` (-> their absolute value);
             ``"none"`` returns ``blocks`` unchanged.
         method: ``"lapack"`` (one batched ``numpy.linalg.eigh``), ``"jacobi"`` (:func:`jacobi_project_blocks`
-            in Taichi) or None: Jacobi on CUDA (all blocks at once on the device), LAPACK elsewhere.
+            in Taichi), ``"householder"`` (:func:`~sim_core.ti_kernels.householder_projection.householder_project_blocks`
+            in Taichi) or None: :data:`DEVICE_METHOD` on CUDA (all blocks at once on the device), LAPACK elsewhere.
 
     Returns:
         ``blocks``, every block with a negative eigenvalue replaced by ``Q f(w) Q^T``.
@@ -302,13 +315,15 @@ def project_reduced_blocks(blocks: np.ndarray, projection: str, method: str | No
         ValueError: unknown projection (the reference's message) or method.
     """
     code = linalg.projection_code(projection)
-    if method not in (None, "lapack", "jacobi"):
-        raise ValueError(f"project_reduced_blocks: unknown method {method!r} (lapack, jacobi)")
+    if method not in (None, "lapack") + tuple(DEVICE_KERNELS):
+        raise ValueError(f"project_reduced_blocks: unknown method {method!r} (lapack, jacobi, householder)")
     if code == 0 or blocks.shape[0] == 0:
         return blocks
-    if method == "jacobi" or (method is None and current_arch() == "cuda"):
+    if method is None and current_arch() == "cuda":
+        method = DEVICE_METHOD
+    if method in DEVICE_KERNELS:
         out = np.ascontiguousarray(np.moveaxis(blocks, 0, -1), dtype=np.float64)  # the kernel's layout (n, n, k)
-        jacobi_project_blocks(out, np.empty_like(out), np.empty_like(out), out.shape[2], code)
+        DEVICE_KERNELS[method](out, np.empty_like(out), np.empty_like(out), out.shape[2], code)
         blocks[:] = np.moveaxis(out, -1, 0)
         return blocks
     w, q = np.linalg.eigh(blocks)
@@ -395,6 +410,34 @@ def marked_rows(elements: np.ndarray, vertices: np.ndarray | None, closed: bool 
     for j in range(1, 1 if closed else elements.shape[1]):
         hit |= mask[elements[:, j]]
     return np.flatnonzero(hit).astype(np.int32)
+
+
+def projected_rows(kept: dict, elements: np.ndarray, vertices: np.ndarray | None, closed: bool = False) -> np.ndarray:
+    """:func:`marked_rows` of ``elements`` for the mask ``vertices``, kept in ``kept`` (a fused part's device dict) for
+    the same ``elements`` and ``vertices`` objects and ``closed``: the rows a part staged before the projection's
+    kernels were queued (its ``stage_projected_rows``) are the same object at its ``add_projected_on_device``, whose
+    uploads of them (:func:`~sim_core.ti_kernels.buffers.rows_on_device`) then find them on the device."""
+    entry = kept.get("projected_rows")
+    if entry is not None and entry[0] is elements and entry[1] is vertices and entry[2] == closed:
+        return entry[3]
+    rows = marked_rows(elements, vertices, closed)
+    kept["projected_rows"] = (elements, vertices, closed, rows)
+    return rows
+
+
+def stage_projected_rows(kept: dict, elements: np.ndarray, vertices: np.ndarray | None, closed: bool, name: str,
+                         projector: "TranslationFreeProjector | None" = None) -> None:
+    """A fused part's ``stage_projected_rows``: its :func:`projected_rows` of ``elements`` for ``vertices`` and
+    ``closed`` sent to the device now, into its kept array ``name`` (:func:`~sim_core.ti_kernels.buffers.rows_on_device`)
+    and, with ``projector``, into the projector's (:meth:`TranslationFreeProjector.stage_rows`), before the projection's
+    kernels are queued (:meth:`sim_core.fused_elastic.FusedElastic.projected_hessian_values_device`): its
+    ``add_projected_on_device`` then copies nothing (a synchronous copy waits for every kernel queued before it)."""
+    if not elements.shape[0]:
+        return
+    rows = projected_rows(kept, elements, vertices, closed)
+    rows_on_device(kept, name, rows)
+    if projector is not None:
+        projector.stage_rows(rows)
 
 
 def add_projected_where_run(part, x: np.ndarray, projection: str, values: np.ndarray,
@@ -490,28 +533,36 @@ class TranslationFreeProjector(KeptArrays):
             return
         add_blocks(self.project(blocks, projection), slots, values)
 
+    def stage_rows(self, rows: np.ndarray) -> None:
+        """Send ``rows`` (int32 ``(c,)``) to the device now, before the kernels of a projection are queued, so that
+        :meth:`add_projected_rows` of the same rows copies nothing (a synchronous copy waits for every kernel queued
+        before it)."""
+        if rows.shape[0]:
+            self._kept("rows", rows.shape, ti.i32, rows)
+
     def add_projected_rows(self, blocks, projection: str, upper, rows: np.ndarray, values,
                            method: str | None = None) -> None:
         """:meth:`add_projected` of the blocks ``rows`` (int32 ``(c,)``) of ``blocks`` by kernels where the arrays
         are (Taichi ndarrays on the device), through the packed upper slot table ``upper`` (int32
         ``(k, 3 m (3 m + 1) / 2)``, :func:`upper_slot_table` of the slot map): the reduction ``B^T H B``
         (:func:`reduce_block_rows`) and the expansion and scatter of the upper triangles
-        (:func:`expand_add_upper_rows`) as kernels; the reduced blocks' projection by :func:`jacobi_project_blocks`
-        where they are, or on the host (:func:`project_reduced_blocks` with LAPACK: the reduced blocks downloaded,
-        projected and uploaded, two copies of ``c (3 m - 3)^2`` float64). ``blocks`` ``(k, 3 m, 3 m)``, ``values``:
-        ndarrays or NumPy arrays; the sums equal :meth:`add_projected`'s to round-off. The reduced blocks' arrays
+        (:func:`expand_add_upper_rows`) as kernels; the reduced blocks' projection by a kernel of
+        :data:`DEVICE_KERNELS` where they are, or on the host (:func:`project_reduced_blocks` with LAPACK: the reduced
+        blocks downloaded, projected and uploaded, two copies of ``c (3 m - 3)^2`` float64). ``blocks``
+        ``(k, 3 m, 3 m)``, ``values``: ndarrays or NumPy arrays; the sums equal :meth:`add_projected`'s to round-off. The reduced blocks' arrays
         are kept and grow with the largest ``c`` asked for (no allocation while the count does not grow).
 
         Args:
-            method: ``"jacobi"`` (the kernel), ``"lapack"`` (the host) or None: LAPACK for at most
-                :data:`HOST_PROJECTION_MAX_BLOCKS` blocks (one environment), the kernel for more.
+            method: ``"jacobi"`` or ``"householder"`` (that kernel), ``"lapack"`` (the host) or None: LAPACK for at
+                most :data:`HOST_PROJECTION_MAX_BLOCKS` blocks (one environment), :data:`DEVICE_METHOD`'s kernel for
+                more.
 
         Raises:
             ValueError: unknown projection or method.
         """
         code = linalg.projection_code(projection)
-        if method not in (None, "lapack", "jacobi"):
-            raise ValueError(f"add_projected_rows: unknown method {method!r} (lapack, jacobi)")
+        if method not in (None, "lapack") + tuple(DEVICE_KERNELS):
+            raise ValueError(f"add_projected_rows: unknown method {method!r} (lapack, jacobi, householder)")
         count = int(rows.shape[0])
         if count == 0:
             return
@@ -534,7 +585,7 @@ class TranslationFreeProjector(KeptArrays):
             upload(reduced, host)
         else:
             work, vectors = (self._kept(name, shape, ti.f64) for name in ("work", "vectors"))
-            jacobi_project_blocks(reduced, work, vectors, count, code)
+            DEVICE_KERNELS[method or DEVICE_METHOD](reduced, work, vectors, count, code)
         expand_add_upper_rows(reduced, helmert, upper, rows_arg, count, values)
 
 
@@ -555,20 +606,24 @@ def _block_rows(columns: _F64_3, count: ti.i32, blocks: _F64_3):
 
 class BlockRowsProjector(KeptArrays):
     """PSD projection of listed symmetric blocks of an array where the kernels run (a device array on CUDA), the
-    result left there: the blocks gathered into the Jacobi kernel's layout (scratch arrays kept here), projected by
-    :func:`jacobi_project_blocks` and written back in rows into a new array (no block crosses to the host;
-    :func:`project_reduced_blocks` with ``method="jacobi"`` to round-off, bit for bit the same arithmetic)."""
+    result left there: the blocks gathered into the projection kernels' layout (scratch arrays kept here), projected
+    by a kernel of :data:`DEVICE_KERNELS` and written back in rows into a new array (no block crosses to the host;
+    :func:`project_reduced_blocks` with the same ``method`` to round-off, bit for bit the same arithmetic)."""
 
-    def project(self, blocks, start: int, rows: np.ndarray, projection: str):
+    def project(self, blocks, start: int, rows: np.ndarray, projection: str, method: str | None = None):
         """The ``projection`` ("none", "clamp", "abs") of the blocks ``blocks[start + rows[r]]``, ``r < c``, of
         ``blocks`` (float64 ``(k, n, n)`` ndarray, symmetric blocks) as a new float64 ndarray ``(max(c, 1), n, n)``
         (its first ``c`` rows; a new one at each call, so that the blocks of several terms projected in turn stay
-        valid together, as the pair kernel's own arrays do); ``rows`` int ``(c,)``.
+        valid together, as the pair kernel's own arrays do); ``rows`` int ``(c,)``; ``method``: a key of
+        :data:`DEVICE_KERNELS`, None for :data:`DEVICE_METHOD`.
 
         Raises:
-            ValueError: unknown projection.
+            ValueError: unknown projection or method.
         """
         code = linalg.projection_code(projection)
+        kernel = DEVICE_KERNELS.get(method or DEVICE_METHOD)
+        if kernel is None:
+            raise ValueError(f"BlockRowsProjector: unknown method {method!r} (jacobi, householder)")
         count = int(rows.shape[0])
         n = int(blocks.shape[1])
         out = new_ndarray(ti.f64, (max(count, 1), n, n))
@@ -577,16 +632,17 @@ class BlockRowsProjector(KeptArrays):
             listed = self._kept("rows", (count,), ti.i32, np.ascontiguousarray(rows, dtype=np.int32))
             _gather_block_columns(blocks, int(start), listed, count, columns)
             if code:
-                jacobi_project_blocks(columns, self._columns("work", (n, n), count),
-                                      self._columns("vectors", (n, n), count), count, code)
+                kernel(columns, self._columns("work", (n, n), count), self._columns("vectors", (n, n), count), count,
+                       code)
             _block_rows(columns, count, out)
         return out
 
 
 def compile_kernels() -> None:
     """On CUDA, JIT-compile (or load from Taichi's offline cache) the device path's kernels on one-block Taichi
-    ndarrays: the Jacobi projection, the reduction and expansion of :meth:`TranslationFreeProjector.add_projected_rows`,
-    the upper-triangle scatter and :class:`BlockRowsProjector`'s gathers; nothing on other archs (which take them
+    ndarrays: the projections (:data:`DEVICE_KERNELS`), the reduction and expansion of
+    :meth:`TranslationFreeProjector.add_projected_rows`, the upper-triangle scatter and :class:`BlockRowsProjector`'s
+    gathers; nothing on other archs (which take them
     only in tests) or before :func:`sim_core.ti_backend.init_backend`. One environment's projection runs on the host
     (:data:`HOST_PROJECTION_MAX_BLOCKS`), so without this a lockstep batch compiles them at its first projected
     iteration (in its timed steps)."""
@@ -601,6 +657,7 @@ def compile_kernels() -> None:
     upload(helmert, helmert_array(m))
     reduce_block_rows(blocks, helmert, rows, 1, reduced)
     jacobi_project_blocks(reduced, work, vectors, 1, 1)
+    householder_project_blocks(reduced, work, vectors, 1, 1)
     expand_add_upper_rows(reduced, helmert, upper, rows, 1, values)
     add_upper_block_rows(blocks, upper, rows, 1, values)
     _gather_block_columns(blocks, 0, rows, 1, columns)

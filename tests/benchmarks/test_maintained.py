@@ -15,7 +15,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 BENCHMARKS = REPO / "benchmarks"
-SCRIPTS = ("bench_band_factor", "bench_cg_precision", "bench_copy_bands", "bench_envelope", "roofline", "count_single_syncs",
+SCRIPTS = ("bench_band_factor", "bench_cg_precision", "bench_copy_bands", "bench_envelope", "bench_projection",
+           "roofline", "count_single_syncs",
            "iterations_lockstep", "parts_lockstep", "pipeline_lockstep", "profile_lockstep", "profile_single",
            "single_rounds", "synthetic_diagnose", "time_batched_gradients", "node_latency_trace", "flood_sim_node",
            "sysid_coverage")

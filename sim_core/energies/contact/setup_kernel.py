@@ -149,6 +149,13 @@ def _positions(x: np.ndarray) -> np.ndarray:
     return _ARRAYS.copy_of("x", x)
 
 
+def _positions_or_held(x: np.ndarray, x_device):
+    """The positions argument of a launch: on CUDA ``x_device`` where given (``x`` where the solver's terms hold it on
+    the device, :func:`~sim_core.ti_kernels.transfer.positions_on_device`: read there, not sent), else
+    :func:`_positions` of ``x``."""
+    return x_device if x_device is not None and current_arch() == "cuda" else _positions(x)
+
+
 def _kept_indices(name: str, vertices: np.ndarray) -> np.ndarray:
     """The kept int32 array ``name`` ``(capacity, 4)`` whose first rows hold ``vertices`` ``(k, 4)``."""
     vertices = np.asarray(vertices).reshape(-1, 4)
@@ -206,12 +213,13 @@ def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarra
 
 
 def pair_codes(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray, min_sine: float,
-               device: dict) -> ListGeometry:
+               device: dict, x_device=None) -> ListGeometry:
     """:func:`pair_geometry` of a candidate list's kept int32 indices (``device``: as there) with the edge-edge
     pairs' sines compared with ``min_sine`` on the device: a :class:`~sim_core.collision.pair_geometry.ListGeometry`,
     from one int32 code a pair (:func:`_codes_kernel`) instead of the geometry's three float64 arrays (a third of the
     bytes to copy back; on CUDA 7 MB in place of 24 at 1024 Forming copies). The same values as
-    :func:`pair_geometry`'s with ``ee_keep = ee_sine > min_sine``.
+    :func:`pair_geometry`'s with ``ee_keep = ee_sine > min_sine``. ``x_device``: ``x`` where the solver's terms hold
+    it on the device, read there on CUDA instead of ``x`` being sent (:func:`friction_frames`'), or None.
 
     Raises:
         ConfigError: the Taichi backend is not initialised.
@@ -229,8 +237,8 @@ def pair_codes(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray, 
     vt, ee = indices
     codes = _ARRAYS.rows("codes", p + q, (), np.int32)
     if p or q:
-        _device_launch(_codes_kernel, (_positions(x), vt, p, ee, q, float(min_sine), codes), outputs={6: p + q},
-                       constant=constant)
+        _device_launch(_codes_kernel, (_positions_or_held(x, x_device), vt, p, ee, q, float(min_sine), codes),
+                       outputs={6: p + q}, constant=constant)
     vt_code, ee_code = codes[:p], codes[p:p + q]
     ee_size = np.abs(ee_code)
     return ListGeometry(np.abs(vt_code) > 1, np.sign(vt_code, dtype=np.float64), ee_size > 2,
@@ -398,7 +406,7 @@ def tangent_basis(normal: np.ndarray) -> np.ndarray:
     return tangent[:k].reshape(k, 3, 2).copy()
 
 
-def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, split: int
+def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, split: int, x_device=None
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest-point weights, unit normals and tangent bases of vertex-triangle and edge-edge pairs in
     one launch: :func:`contact_frames` of each kind, then :func:`tangent_basis` of the normals (the same
@@ -410,6 +418,10 @@ def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, spli
             ``[a0, a1, b0, b1]`` (edge-edge), global vertex indices, shape ``(k, 4)``.
         sides: the pairs' step sides (+1 / -1, 0 unsigned), shape ``(k,)``.
         split: number of vertex-triangle rows, ``0 <= split <= k``.
+        x_device: ``x`` as the float64 Taichi ndarray ``(n, 3)`` where another term of the solver holds it on the
+            device (:func:`~sim_core.ti_kernels.transfer.positions_on_device`), read there on CUDA instead of ``x``
+            being sent (a stacked batch's positions: 14 MB at 1024 Forming copies, a new array every step); None, or
+            off CUDA: ``x`` is read.
 
     Returns:
         ``(weights (k, 4), normal (k, 3), tangent (k, 3, 2))``.
@@ -424,7 +436,7 @@ def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, spli
     side = _ARRAYS.rows("side", k)
     side[:k] = np.reshape(sides, -1)
     frames = _ARRAYS.rows("frames", k, (13,))
-    _device_launch(_friction_frames_kernel, (_positions(x), _kept_indices("pairs", vertices), side, k,
+    _device_launch(_friction_frames_kernel, (_positions_or_held(x, x_device), _kept_indices("pairs", vertices), side, k,
                                              int(split), frames), outputs={5: k})
     return frames[:k, :4].copy(), frames[:k, 4:7].copy(), frames[:k, 7:].reshape(k, 3, 2).copy()
 

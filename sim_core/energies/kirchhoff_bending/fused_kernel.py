@@ -31,7 +31,8 @@ from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.worker_recipe import part_recipe
 from sim_core.ti_kernels.block_projection import (TranslationFreeProjector, add_projected_where_run, add_upper_entry,
-                                                  SlotTables, marked_rows, upper_index)
+                                                  SlotTables, marked_rows, projected_rows, stage_projected_rows,
+                                                  upper_index)
 from sim_core.energies.hinge_bending.kernel import (_dihedral_angle, _hinge_positions, _theta_gradient, _theta_hessian,
                                          _theta_hessian_unsymmetrized)
 
@@ -381,6 +382,11 @@ class FusedKirchhoffBending:
             blocks, slots = blocks[rows], slots[rows]
         self._projector.add_projected(blocks, projection, slots, values)
 
+    def stage_projected_rows(self, vertices: np.ndarray | None = None, closed: bool = False) -> None:
+        """The rows :meth:`add_projected_on_device` takes, sent before the projection's kernels are queued
+        (:func:`~sim_core.ti_kernels.block_projection.stage_projected_rows`)."""
+        stage_projected_rows(self._device, self.vertices, vertices, closed, "triangle_rows", self._projector)
+
     def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
                                 closed: bool = False) -> None:
         """:meth:`add_projected` by kernels where they run (on CUDA the device; on the CPU arch the same kernels on
@@ -397,7 +403,7 @@ class FusedKirchhoffBending:
         linalg.projection_code(projection)
         if self._hinges.shape[0] == 0:
             return
-        rows = marked_rows(self.vertices, vertices, closed)
+        rows = projected_rows(self._device, self.vertices, vertices, closed)
         blocks = self._triangle_hessians_where_run(x, rows)  # the blocks of the triangles projected only
         self._projector.add_projected_rows(blocks, projection, on_device(self._device, "tri_upper", self._tri_upper),
                                            rows, values)

@@ -45,7 +45,8 @@ from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.worker_recipe import part_recipe
 from sim_core.ti_kernels.block_projection import (
-    TranslationFreeProjector, add_projected_where_run, add_upper_entry, BoundSlotTables, marked_rows, upper_index,
+    TranslationFreeProjector, add_projected_where_run, add_upper_entry, BoundSlotTables, marked_rows, projected_rows,
+    stage_projected_rows, upper_index,
 )
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -341,6 +342,11 @@ class FusedSpringMembrane(BoundSlotTables):
         """
         add_projected_where_run(self, x, projection, values, vertices)
 
+    def stage_projected_rows(self, vertices: np.ndarray | None = None, closed: bool = False) -> None:
+        """The rows :meth:`add_projected_on_device` takes, sent before the projection's kernels are queued
+        (:func:`~sim_core.ti_kernels.block_projection.stage_projected_rows`)."""
+        stage_projected_rows(self._device, self._triangles, vertices, closed, "triangle_rows", self._projector)
+
     def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
                                 closed: bool = False) -> None:
         """The projected blocks added into ``values`` ``(pattern.keys.size,)`` where the kernels run (on CUDA a device
@@ -364,7 +370,7 @@ class FusedSpringMembrane(BoundSlotTables):
             if self._blocks is None:
                 self._blocks = np.zeros((t_count, 9, 9))
             blocks = on_device(d, "blocks", self._blocks, scratch=True)
-            rows = marked_rows(self._triangles, vertices, closed)  # the blocks of these triangles made only
+            rows = projected_rows(d, self._triangles, vertices, closed)  # the blocks of these triangles made only
             spring_membrane_triangle_blocks(x, on_device(d, "triangles", self._triangles),
                                             on_device(d, "area0", self._area0), p.k_area,
                                             rows_on_device(d, "triangle_rows", rows), rows.size, blocks)

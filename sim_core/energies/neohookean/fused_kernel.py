@@ -35,7 +35,7 @@ from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_projected_where_run,
                                                   add_upper_block_rows, add_upper_entry, BoundSlotTables,
-                                                  marked_rows, upper_index)
+                                                  marked_rows, projected_rows, stage_projected_rows, upper_index)
 from sim_core.ti_kernels.buffers import on_device, rows_on_device
 from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import summing_kernel
@@ -309,6 +309,11 @@ class FusedStableNeoHookean(BoundSlotTables):
             rows = marked_rows(self._tets, vertices)
             add_block_rows(blocks, self._slots, rows, rows.size, values)
 
+    def stage_projected_rows(self, vertices: np.ndarray | None = None, closed: bool = False) -> None:
+        """The rows :meth:`add_projected_on_device` takes, sent before the projection's kernels are queued
+        (:func:`~sim_core.ti_kernels.block_projection.stage_projected_rows`)."""
+        stage_projected_rows(self._device, self._tets, vertices, closed, "rows")
+
     def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
                                 closed: bool = False) -> None:
         """The projected blocks of :meth:`add_projected` made and added into ``values`` ``(pattern.keys.size,)`` where
@@ -325,7 +330,7 @@ class FusedStableNeoHookean(BoundSlotTables):
         code = projection_code(projection)
         if self._tets.shape[0] == 0:
             return
-        rows = marked_rows(self._tets, vertices, closed)  # with vertices: the tets touching a marked vertex
+        rows = projected_rows(self._device, self._tets, vertices, closed)  # with vertices: the tets touching one
         if rows.size == 0:
             return
         p = self.potential

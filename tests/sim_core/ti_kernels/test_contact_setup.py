@@ -265,6 +265,47 @@ def test_friction_frames_equal_the_frames_of_each_kind_and_their_tangents_bit_fo
     assert [a.shape for a in empty] == [(0, 4), (0, 3), (0, 3, 2)]
 
 
+def test_friction_frames_read_positions_held_on_the_device_as_they_are(ti_cpu, monkeypatch):
+    """With ``x_device`` (the positions where the solver's terms hold them on the device) the frames launch and the
+    candidate lists' codes read that array, through CUDA's launch path emulated on the CPU arch, instead of sending
+    ``x``: the same values bit for bit, and no device copy of the positions made for the launch; off CUDA ``x`` itself
+    is read."""
+    from sim_core import ti_backend
+    from sim_core.energies.contact import setup_kernel as contact_setup
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.transfer import upload
+
+    x, vertices = _batch(11, 300)
+    sides = np.random.default_rng(3).choice([-1.0, 0.0, 1.0], size=len(vertices))
+    x.flags.writeable = False  # read-only, as a lockstep batch's x^n
+    want = contact_setup.friction_frames(x, vertices, sides, 120)
+    held = upload(ti.ndarray(ti.f64, x.shape), np.ascontiguousarray(x))
+    stale = ti.ndarray(ti.f64, x.shape)  # zeros: what a launch reading the device array would see
+    for got, ref in zip(contact_setup.friction_frames(x, vertices, sides, 120, stale), want):  # off CUDA: x read
+        np.testing.assert_array_equal(got, ref)
+    for module in (contact_setup, ti_backend):
+        monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    names = []  # the launch arrays sent or kept on the device, by name (position 0: the positions)
+    on_device = contact_setup.on_device
+    monkeypatch.setattr(contact_setup, "on_device", lambda kept, name, *a, **k: (names.append(name),
+                                                                                on_device(kept, name, *a, **k))[1])
+    for got, ref in zip(contact_setup.friction_frames(x, vertices, sides, 120), want):  # x sent
+        np.testing.assert_array_equal(got, ref)
+    assert any(name.startswith(("0:", "frozen_x:")) for name in names)
+    names.clear()
+    for got, ref in zip(contact_setup.friction_frames(x, vertices, sides, 120, held), want):  # x read where held
+        np.testing.assert_array_equal(got, ref)
+    assert names and not any(name.startswith(("0:", "frozen_x:")) for name in names)
+    assert not np.array_equal(contact_setup.friction_frames(x, vertices, sides, 120, stale)[0], want[0])
+    # the candidate lists' codes (the pairs' sides at x^n and at the converged positions) likewise
+    vt, ee = vertices[:150].astype(np.int32), vertices[100:].astype(np.int32)
+    codes = contact_setup.pair_codes(x, vt, ee, 0.1, {})
+    names.clear()
+    for name, got in zip(codes._fields, contact_setup.pair_codes(x, vt, ee, 0.1, {}, held)):
+        np.testing.assert_array_equal(got, getattr(codes, name), err_msg=name)
+    assert names and not any(name.startswith(("0:", "frozen_x:")) for name in names)
+
+
 def test_the_contact_sets_one_launch_friction_equals_the_frames_of_its_potentials(ti_cpu):
     """On the Taichi backend the contact set builds its friction from one set-up launch: the rows, row
     sources, normal forces, coefficients, frames and tangents of the pair potentials' contact_frames

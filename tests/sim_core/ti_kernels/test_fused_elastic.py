@@ -491,6 +491,18 @@ def test_device_array_evaluation_equals_the_host_one(ti_cpu, monkeypatch):
         assert not isinstance(device, np.ndarray) and device.shape == want.shape
         assert relative_error(device.to_numpy(), want) < 1e-12
     assert relative_error(want, p_host) > 1e-6  # the marked body's blocks only
+    # a new mask (a lockstep batch's next projected retry): every part's element rows are sent before the
+    # projection's first kernel (the fill of the sums), so that no synchronous copy waits for a queued kernel
+    from sim_core.ti_kernels import device_copy, transfer
+
+    events = []
+    to_device, fill = device_copy.to_device, transfer.fill
+    monkeypatch.setattr(device_copy, "to_device", lambda *args: (events.append("copy"), to_device(*args))[1])
+    monkeypatch.setattr(transfer, "fill", lambda *args: (events.append("fill"), fill(*args))[1])
+    device = fused_dev.projected_hessian_values_device(x, "abs", marked.copy())
+    assert relative_error(device.to_numpy(), want) < 1e-12
+    assert events.count("fill") == 1 and events.count("copy") >= 1, events  # the marked body's rows
+    assert events[-1] == "fill", events  # every copy before it
     with pytest.raises(ValueError, match="projection"):
         fused_dev.projected_hessian_values_device(x, "flip")
 

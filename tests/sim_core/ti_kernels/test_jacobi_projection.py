@@ -8,24 +8,13 @@ import numpy as np
 import pytest
 
 from sim_core.ti_kernels.block_projection import project_reduced_blocks  # noqa: E402 (Taichi imported here)
+from tests.sim_core.ti_kernels.test_householder_projection import symmetric_blocks
 
 
 @pytest.mark.parametrize("n", [3, 6, 9, 15])
 @pytest.mark.parametrize("projection", ["clamp", "abs"])
 def test_jacobi_projection_matches_lapack(ti_cpu, n, projection):
-    rng = np.random.default_rng(n)
-    a = rng.normal(size=(40, n, n))
-    blocks = a + np.swapaxes(a, 1, 2)
-    # some definite blocks (kept as they are), a rank-deficient one and a diagonal one
-    blocks[:8] = np.matmul(a[:8], np.swapaxes(a[:8], 1, 2)) + 0.1 * np.eye(n)
-    blocks[8] = np.outer(a[8, 0], a[8, 0]) - np.outer(a[8, 1], a[8, 1])
-    blocks[9] = np.diag(rng.normal(size=n))
-    # positive semi-definite, singular (the Cholesky test fails, the rotations run): kept to round-off
-    blocks[10] = np.outer(a[10, 0], a[10, 0]) + np.outer(a[10, 1], a[10, 1])
-    # definite with a smallest eigenvalue near round-off, and indefinite by about as much
-    q = np.linalg.qr(a[11])[0]
-    blocks[11] = (q * np.r_[1e-14, np.ones(n - 1)]) @ q.T
-    blocks[12] = (q * np.r_[-1e-6, np.ones(n - 1)]) @ q.T
+    blocks = symmetric_blocks(n)
     want = project_reduced_blocks(blocks.copy(), projection, method="lapack")
     got = project_reduced_blocks(blocks.copy(), projection, method="jacobi")
     scale = np.abs(blocks).max(axis=(1, 2))[:, None, None]
@@ -55,8 +44,8 @@ def test_the_device_projection_kernels_are_compiled_with_the_step_kernels(ti_cpu
 
     monkeypatch.setattr(bp, "current_arch", lambda: "cuda")
     bp.compile_kernels()
-    for kernel in (bp.jacobi_project_blocks, bp.reduce_block_rows, bp.expand_add_upper_rows, bp.add_upper_block_rows,
-                   bp._gather_block_columns, bp._block_rows):
+    for kernel in (bp.jacobi_project_blocks, bp.householder_project_blocks, bp.reduce_block_rows,
+                   bp.expand_add_upper_rows, bp.add_upper_block_rows, bp._gather_block_columns, bp._block_rows):
         assert kernel._primal.compiled_kernels
     calls = []
     monkeypatch.setattr(bp, "compile_kernels", lambda: calls.append(1))

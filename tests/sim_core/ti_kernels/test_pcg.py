@@ -234,11 +234,20 @@ def test_an_unknown_precision_is_refused(ti_cpu):
 def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_cpu, monkeypatch, device_hessian,
                                                                               precision):
     """With ``device_hessian`` (CUDA's defaults) the CG takes the contact Hessians from the pair kernel's ndarray,
-    and the projected retry projects the contact pair blocks by the Jacobi kernel; the CG in either precision."""
+    and the projected retry projects the contact pair blocks and the elastic terms' reduced blocks by the device's
+    projection kernel (``block_projection.DEVICE_METHOD``, Householder-QL; the separate runs: LAPACK); the CG in
+    either precision."""
     from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.ti_kernels import block_projection
 
     monkeypatch.setattr(PairBatch, "two_pass", True if device_hessian else PairBatch.two_pass)
     monkeypatch.setattr(PairBatch, "device_hessian", device_hessian)
+    projected = []
+    if device_hessian:  # the elastic blocks' projection as on CUDA (project_reduced_blocks: the device's kernel)
+        monkeypatch.setattr(block_projection, "current_arch", lambda: "cuda")
+        kernel = block_projection.DEVICE_KERNELS[block_projection.DEVICE_METHOD]
+        monkeypatch.setitem(block_projection.DEVICE_KERNELS, block_projection.DEVICE_METHOD,
+                            lambda *args: (projected.append(args[3]), kernel(*args))[1])
     model = pad_model()
     steps = 2
     batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model),
@@ -246,7 +255,7 @@ def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_c
                                                                     linear_solver="pcg", cg_precision=precision))
     assert batch.lockstep.solver.pcg.precision == precision
     if device_hessian:
-        batch.lockstep.solver.subset_projection = "jacobi"
+        batch.lockstep.solver.subset_projection = block_projection.DEVICE_METHOD
     pose0 = batch.states[0].effector_pose["pad"].copy()
     got = []
     for k in range(steps):
@@ -255,6 +264,7 @@ def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_c
         got.append([s.x.copy() for s in batch.states])
     assert batch.lockstep.solver.pcg.iterations > 0
     assert batch.lockstep.solver.pcg.bands.usable.all()  # each copy's sheet a band block of the preconditioner
+    assert not device_hessian or sum(projected) > 0  # projected retries ran, their blocks by the device's kernel
     tol = SolverConfig().tol_velocity * 0.005
     for i in range(3):
         alone = separate_run(model, PARAMS[i], MOTIONS[i])
