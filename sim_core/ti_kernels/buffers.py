@@ -11,6 +11,8 @@ launches find the arrays they were bound to.
 
 from __future__ import annotations
 
+import math
+import sys
 import threading
 from typing import NamedTuple
 
@@ -105,6 +107,10 @@ class LaunchArrays(threading.local):
     def device(self) -> dict:
         """This thread's cache of device copies of its kept arrays (the ``kept`` of :func:`on_device`)."""
         return self.__dict__.setdefault("_device", {})
+
+    def spares(self) -> dict:
+        """This thread's device arrays that launches hand to their results (the ``kept`` of :func:`unheld_rows`)."""
+        return self.__dict__.setdefault("_spares", {})
 
     def copy_of(self, name: str, values: np.ndarray) -> np.ndarray:
         """The kept float64 array ``name`` of ``values``' shape, holding a copy of ``values``."""
@@ -219,6 +225,43 @@ def copy_back(host: np.ndarray, array, rows: int | None = None) -> np.ndarray:
     if not device_copy.to_host(host, array, rows):
         np.copyto(host[:rows], _to_numpy(array)[:rows])
     return host
+
+
+def unheld_rows(kept: dict, name: str, rows: int, tail: tuple[int, ...] = (), spares: int = 6):
+    """A float64 Taichi ndarray ``(capacity, *tail)``, ``capacity >= rows``, that no one but ``kept`` holds, for a
+    launch whose results stay where it wrote them (:class:`DeviceRows` of an evaluation, read lazily): one of the
+    arrays made here before under ``name`` (``kept[name]``, at most ``spares`` of them) to which ``kept`` holds the
+    only reference (:func:`sys.getrefcount`: no evaluation's :class:`DeviceRows`, no caller, keeps it), else a new
+    one of ``rows`` and a quarter more, rounded up to a power of ``sqrt(2)`` (so that lists a few rows longer or shorter
+    find it again; in place of a free one too short, else beside them, or outside ``kept`` when
+    ``spares`` are all held). So an evaluation's rows are never written while anything can read them, and a launch
+    whose former results are gone allocates nothing. Its values are a former launch's: the caller's kernel writes
+    the rows that will be read (and zeroes its sums).
+
+    Raises:
+        ValueError: ``rows`` or a ``tail`` dimension not positive (Taichi allocates no empty ndarray).
+    """
+    arrays = kept.setdefault(name, [])
+    short = None
+    for i in range(len(arrays)):
+        if sys.getrefcount(arrays[i]) == 2:  # the list's reference and getrefcount's argument alone
+            if arrays[i].shape[0] >= rows and tuple(arrays[i].shape[1:]) == tuple(tail):
+                return arrays[i]
+            short = i
+    array = device_copy.new_ndarray(ti.f64, (_bucket(int(rows) + int(rows) // 4 + 64),) + tuple(tail))
+    if short is not None:
+        arrays[short] = array
+    elif len(arrays) < spares:
+        arrays.append(array)
+    return array
+
+
+def _bucket(rows: int) -> int:
+    """The smallest ``ceil(sqrt(2)^k) >= rows`` (:func:`unheld_rows`' capacities)."""
+    k = math.ceil(2.0 * math.log2(max(rows, 1)))
+    while math.ceil(2.0 ** (0.5 * k)) < rows:  # (round-off of the logarithm)
+        k += 1
+    return math.ceil(2.0 ** (0.5 * k))
 
 
 class DeviceRows:

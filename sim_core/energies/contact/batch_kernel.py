@@ -29,7 +29,9 @@ gradients cross to the device and back at each launch, and a Forming step's pair
 Where arrays cross to a GPU, derivatives at new positions take two passes (:attr:`PairBatch.two_pass`) made in one
 launch whose list of active pairs stays on the device between them (:attr:`PairBatch.listed`,
 :mod:`sim_core.energies.contact.listed_kernel`), and the pair penalties' energies by copy are summed where the launch
-left the distances (:mod:`sim_core.energies.contact.copy_energy_kernel`).
+left the distances (:mod:`sim_core.energies.contact.copy_energy_kernel`). The Hessian, distance-gradient and
+gradient-sum rows a launch leaves on the device go into arrays that no evaluation holds any more
+(:func:`~sim_core.ti_kernels.buffers.unheld_rows`), so the launches of a Newton iteration allocate no device memory.
 
 When both potentials already keep the distances of ``x`` (the energy of the accepted line-search
 point, the next Newton iterate), the derivatives are computed for their active pairs only. The
@@ -55,7 +57,7 @@ from sim_core.energies.contact.pair_measure import measure_pair, zero_sums
 from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device, rows_on_device
+from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device, rows_on_device, unheld_rows
 from sim_core.ti_kernels.copy_vectors import CopySums
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
@@ -185,6 +187,13 @@ _ARRAYS = LaunchArrays()
 shared by every :class:`PairBatch` (an evaluation copies its rows out), so a step's new batch binds
 no new arrays and writes into pages already mapped (fresh ``(p, 12, 12)`` arrays per batch cost
 page faults at the first launches)."""
+
+
+def _unheld(rows: int, tail: tuple[int, ...]):
+    """A device array ``(>= rows, *tail)`` for a launch's results that stay on the device (Hessian, distance gradient
+    and gradient sum rows), one of this thread's that no evaluation holds any more where there is one
+    (:func:`~sim_core.ti_kernels.buffers.unheld_rows`): the launches of a Newton iteration allocate none."""
+    return unheld_rows(_ARRAYS.spares(), f"rows{tail}", rows, tail)
 
 
 def work_arrays(rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -460,10 +469,10 @@ class PairBatch:
             x_arg, vertices, sides, rows = self._own_positions(x, x_device), self._layout.host_local(), self.sides, \
                 self._all
         grad_arg, hess_arg = grad, hess
-        if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid
-            grad_arg, hess_arg = new_ndarray(ti.f64, (capacity, 12)), new_ndarray(ti.f64, (capacity, 12, 12))
+        if device_hessian:  # arrays no evaluation holds: an earlier evaluation's rows stay valid
+            grad_arg, hess_arg = _unheld(capacity, (12,)), _unheld(capacity, (12, 12))
         if device_gradient:  # likewise: the sums stay where the kernel wrote them
-            gradients_arg = new_ndarray(ti.f64, (2 * u, 3))
+            gradients_arg = _unheld(2 * u, (3,))
         _ARRAYS.device()["launch_owner"] = object()  # this launch's places now hold the work arrays (copy_energies)
         listed_derivatives(x_arg, vertices, sides, rows, p, self.split, capacity, self._kernel_parameters(), work,
                            listed, grad_arg, hess_arg, gradients_arg, out_arg)
@@ -595,11 +604,10 @@ class PairBatch:
             x_arg, vertices_arg, sides_arg, rows_arg = (self._own_positions(x, x_device), self._layout.host_local(),
                                                         self.sides, kept_rows)
             z = _ARRAYS.rows("z", m, (4, 3))
-        if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid
-            grad_arg = new_ndarray(ti.f64, (m, 12))
-            hess_arg = new_ndarray(ti.f64, (m, 12, 12))
+        if device_hessian:  # arrays no evaluation holds: an earlier evaluation's rows stay valid
+            grad_arg, hess_arg = _unheld(m, (12,)), _unheld(m, (12, 12))
         if device_gradient:  # likewise: the sums stay where the kernel wrote them
-            gradients_arg = new_ndarray(ti.f64, (2 * u, 3))
+            gradients_arg = _unheld(2 * u, (3,))
         _ARRAYS.device()["launch_owner"] = object()  # this launch's rows now hold the work arrays (copy_energies)
         _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, *self._kernel_parameters(),
                       int(bool(derivatives)), pack, z, d_arg,

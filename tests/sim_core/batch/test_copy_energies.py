@@ -173,3 +173,27 @@ def test_the_listed_pair_launch_gives_a_lockstep_step_the_default_states(model, 
     assert added and all(added)
     for a, b in zip(default.states, listed.states):
         np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-14)
+
+
+def test_device_rows_from_unheld_arrays_give_a_lockstep_step_the_default_states(model, monkeypatch):
+    """With the pair batch's Hessian, distance-gradient and gradient-sum rows left on the device (``device_hessian``,
+    ``device_gradient``, the listed launch: CUDA's defaults) in arrays no evaluation holds (``buffers.unheld_rows``),
+    a lockstep run of the device CG takes the Newton iterations and backtracks of the host rows' run and its states to
+    round-off, while its launches allocate fewer arrays than they take (reused once their evaluations are gone)."""
+    from sim_core.energies.contact import batch_kernel
+    from sim_core.ti_kernels import buffers, device_copy
+
+    default, infos = _run(model, DEVICE_CG)
+    taken, made = [], []
+    unheld = buffers.unheld_rows
+    monkeypatch.setattr(batch_kernel, "unheld_rows", lambda *a, **k: taken.append(a[1]) or unheld(*a, **k))
+    new = device_copy.new_ndarray
+    monkeypatch.setattr(device_copy, "new_ndarray", lambda *a: (made.append(a[1]), new(*a))[1])
+    for flag in ("two_pass", "listed", "device_hessian", "device_gradient"):
+        monkeypatch.setattr(batch_kernel.PairBatch, flag, True)
+    kept, infos_kept = _run(model, DEVICE_CG)
+    assert infos_kept == infos and sum(bt for row in infos for _, bt in row) > 0
+    made_rows = [shape for shape in made if len(shape) >= 2 and shape[1:] in ((12,), (12, 12))]
+    assert len(taken) > 2 * len(made_rows) > 0  # (the gradient sums' (2 u, 3) arrays are counted in taken only)
+    for a, b in zip(default.states, kept.states):
+        np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-14)

@@ -616,3 +616,45 @@ def test_the_listed_launch_equals_the_two_passes_bit_for_bit_in_one_launch(ti_cp
         assert pot.add_copy_energies_on_device(y, None, copy_of_vertex, sums)
         np.testing.assert_allclose(sums.read(), split, rtol=1e-13, atol=0.0)
     assert calls == [] and len(listed_calls) == (1 if capacity is None else 2)  # all kept from the launch
+
+
+@pytest.mark.parametrize("listed", [False, True])
+def test_device_rows_are_reused_only_once_no_evaluation_holds_them(ti_cpu, monkeypatch, listed):
+    """The launches whose Hessian and distance-gradient rows stay on the device (``PairBatch.device_hessian``) take
+    arrays no evaluation holds (``buffers.unheld_rows``): a Hessian kept by a caller keeps its values through later
+    launches at other positions (its array is not handed to them), every launch's Hessians equal the host path's bit
+    for bit, and once the earlier evaluations are gone the launches allocate no device array."""
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.ti_kernels import buffers, device_copy
+
+    x, linked, alone = _potentials()
+    PairBatch(*alone)
+    rng = np.random.default_rng(28)
+    points = [x + 0.1 * EPS * rng.normal(size=x.shape) for _ in range(7)]
+    monkeypatch.setattr(PairBatch, "two_pass", True)
+    monkeypatch.setattr(PairBatch, "listed", listed)
+    monkeypatch.setattr(PairBatch, "device_hessian", False)
+    expected = [[pot.hessian(y, "none").blocks for pot in alone] for y in points]  # the host path
+    made = []
+    new = device_copy.new_ndarray
+    monkeypatch.setattr(device_copy, "new_ndarray", lambda *a: (made.append(a[1]), new(*a))[1])
+    monkeypatch.setattr(PairBatch, "device_hessian", True)
+
+    def fresh(rows):  # the rows downloaded now (not a DeviceRows' kept host copy)
+        return buffers.DeviceRows(rows.array, rows.start, rows.stop).to_numpy()
+
+    held = [pot.hessian_on_device(points[0]) for pot in linked]
+    for y, hess in zip(points[1:4], expected[1:4]):
+        for pot, blocks in zip(linked, hess):
+            got = pot.hessian_on_device(y)
+            assert all(got.blocks.array is not h.blocks.array for h in held)
+            np.testing.assert_array_equal(fresh(got.blocks), blocks)
+    for pot, kept, blocks in zip(linked, held, expected[0]):
+        assert np.count_nonzero(blocks) and kept.blocks.shape == blocks.shape
+        np.testing.assert_array_equal(fresh(kept.blocks), blocks)
+    del held, got
+    before = len(made)
+    for y, hess in zip(points[4:], expected[4:]):
+        for pot, blocks in zip(linked, hess):
+            np.testing.assert_array_equal(fresh(pot.hessian_on_device(y).blocks), blocks)
+    assert before > 0 and len(made) == before

@@ -185,3 +185,29 @@ def test_rows_on_device_keeps_one_array_of_the_owners_capacity(ti_cpu, monkeypat
     monkeypatch.setattr(backend, "current_arch", lambda: "cpu")
     other: dict = {}
     assert buffers.rows_on_device(other, "v", first) is first and other == {}
+
+
+def test_unheld_rows_hands_out_only_arrays_nothing_else_holds(ti_cpu):
+    """``buffers.unheld_rows``: an array comes back only once nothing but the kept list holds it (a caller's reference
+    or a ``DeviceRows`` keeps it out), with at least the rows asked for and the tail asked for; one too short is
+    replaced, and past ``spares`` held arrays a new one is made outside the list."""
+    from sim_core.ti_kernels.buffers import DeviceRows, unheld_rows
+
+    kept: dict = {}
+    first = unheld_rows(kept, "h", 100, (12,), spares=2)
+    assert first.shape[0] >= 100 and tuple(first.shape[1:]) == (12,)
+    rows, first_id, first_rows = DeviceRows(first, 0, 100), id(first), first.shape[0]
+    del first
+    second = unheld_rows(kept, "h", 100, (12,), spares=2)
+    assert id(second) != first_id
+    third = unheld_rows(kept, "h", 10, (12,), spares=2)  # both held: a new one, not kept
+    assert id(third) not in (first_id, id(second)) and len(kept["h"]) == 2
+    del rows, third
+    assert id(unheld_rows(kept, "h", 50, (12,), spares=2)) == first_id  # the DeviceRows gone: free again
+    second_id = id(second)
+    del second
+    assert {id(unheld_rows(kept, "h", 100, (12,), spares=2)) for _ in range(2)} <= {first_id, second_id}
+    longer = unheld_rows(kept, "h", 10 * first_rows, (12,), spares=2)  # both free, both short: one replaced
+    assert longer.shape[0] >= 10 * first_rows and any(a is longer for a in kept["h"]) and len(kept["h"]) == 2
+    del longer
+    assert unheld_rows(kept, "h", 10, (12, 12), spares=2).shape[1:] == (12, 12)  # another tail: not a (12,) array
