@@ -71,6 +71,11 @@ class GreenStrainSolid(BorrowedWorkspace):
         self.mu, self.lam = linear_lame_parameters(self.youngs_modulus, self.poisson_ratio)
         self.tets, self.tet_rest_volume = self.per_tet.tets, self.per_tet.tet_rest_volume
 
+    @property
+    def tet_dFdx(self) -> np.ndarray:
+        """``dF/dx`` per tet, ``(k, 4, 3)`` in 1/m (the per-tet Stable Neo-Hookean's: the fused kernel reads it)."""
+        return self.per_tet.tet_dFdx
+
     def _strain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(F, E, tr E)`` per tet at ``x`` ``(n, 3)``: shapes ``(k, 3, 3)``, ``(k, 3, 3)``, ``(k,)``."""
         F = self.per_tet._deformation(np.asarray(x, dtype=float))

@@ -1,0 +1,196 @@
+"""Saint Venant-Kirchhoff tetrahedra in Taichi: energy, gradient and projected 12x12 Hessian blocks.
+
+The same quantities as :class:`sim_core.energies.green_strain.reference.GreenStrainSolid` (the reference and test
+oracle), one tet per thread, float64. With ``F`` the deformation gradient, ``E = (F^T F - I) / 2`` the Green strain
+and ``S = 2 mu E + lam tr(E) I`` (Bonet and Wood, Nonlinear Continuum Mechanics for FE Analysis, 2nd ed., eq. 6.8)::
+
+    psi = mu tr(E^2) + lam / 2 tr(E)^2,        P = F S,
+    d2psi / dF_ij dF_ab = delta_ia S_bj + mu ((F F^T)_ia delta_jb + F_ib F_aj) + lam F_ij F_ab      (vec F: 3 i + j),
+
+the 9x9 ``d2psi/dF2`` formed per tet, its negative eigenvalues filtered per projection by the cyclic Jacobi method
+(:func:`sim_core.ti_kernels.linalg.project_psd_sym`: StVK has no compact analytic eigensystem, so the reference
+projects numerically too) and mapped to the vertices, ``H = V_t M^T A M`` with ``M = dvecF/dx`` (9x12,
+``M[3 i + j, 3 a + c] = delta_ic g_a[j]``, ``g_a`` row ``a`` of ``tet_dFdx``). Loops are serial on the CPU
+(``serial_loops``): sums into shared vertices in element order, reproducible bit for bit.
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
+# objects (string annotations are rejected).
+
+import numpy as np
+
+from sim_core.energies.base import HessianBlocks, Projection
+from sim_core.energies.green_strain.reference import GreenStrainSolid
+from sim_core.energies.neohookean.kernel import _tet_deformation_gradient
+from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
+from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.linalg import matmul, project_psd_sym, projection_code
+
+
+@ti.func
+def green_strain_stress(F, mu: ti.f64, lam: ti.f64):
+    """``(E, tr E, S)`` of a 3x3 ``F``: Green strain, its trace and the second Piola-Kirchhoff stress (Pa)."""
+    E = 0.5 * (matmul(F.transpose(), F) - ti.Matrix.identity(ti.f64, 3))
+    tr = E[0, 0] + E[1, 1] + E[2, 2]
+    S = 2.0 * mu * E + lam * tr * ti.Matrix.identity(ti.f64, 3)
+    return E, tr, S
+
+
+@ti.func
+def green_strain_psi(E, tr, mu: ti.f64, lam: ti.f64):
+    """``psi = mu tr(E^2) + lam / 2 tr(E)^2`` (J/m^3) of a symmetric ``E`` and its trace."""
+    return mu * (E * E).sum() + 0.5 * lam * tr * tr
+
+
+@fast_kernel
+def evaluate_green_strain_energy(
+    x: ti.types.ndarray(), tets: ti.types.ndarray(), dFdx: ti.types.ndarray(), vol: ti.types.ndarray(),
+    mu: ti.f64, lam: ti.f64, tet_energy: ti.types.ndarray(),
+):
+    """``tet_energy[t] = V_t psi(F_t)`` (J)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
+    for t in range(tets.shape[0]):
+        F = _tet_deformation_gradient(x, tets, dFdx, t)
+        E, tr, _ = green_strain_stress(F, mu, lam)
+        tet_energy[t] = vol[t] * green_strain_psi(E, tr, mu, lam)
+
+
+@fast_kernel
+def evaluate_green_strain_gradient(
+    x: ti.types.ndarray(), tets: ti.types.ndarray(), dFdx: ti.types.ndarray(), vol: ti.types.ndarray(),
+    mu: ti.f64, lam: ti.f64, grad: ti.types.ndarray(),
+):
+    """``grad[v] += V_t (F_t S_t) g_a`` for every tet corner ``a`` at vertex ``v`` (N); ``grad`` zeroed first."""
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
+    for v, d in ti.ndrange(grad.shape[0], 3):
+        grad[v, d] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
+    for t in range(tets.shape[0]):
+        F = _tet_deformation_gradient(x, tets, dFdx, t)
+        _, _, S = green_strain_stress(F, mu, lam)
+        P = matmul(F, S)
+        for a in ti.static(range(4)):
+            v = tets[t, a]
+            for i in ti.static(range(3)):
+                acc = 0.0
+                for j in ti.static(range(3)):
+                    acc += P[i, j] * dFdx[t, a, j]
+                ti.atomic_add(grad[v, i], vol[t] * acc)
+
+
+@ti.func
+def _green_strain_projected_block(x: ti.template(), tets: ti.template(), dFdx: ti.template(), vol: ti.template(),
+                                  mu: ti.f64, lam: ti.f64, code: ti.i32, t: ti.i32, blocks: ti.template()):
+    """``blocks[t] = V_t M^T f(A) M`` (12x12, N/m) of tet ``t``: ``A`` the 9x9 ``d2psi/dF2`` (module docstring),
+    ``f`` the projection ``code`` of its eigenvalues (none where ``code`` is 0 or none is negative)."""
+    F = _tet_deformation_gradient(x, tets, dFdx, t)
+    _, _, S = green_strain_stress(F, mu, lam)
+    B = matmul(F, F.transpose())
+    A = ti.Matrix.zero(ti.f64, 9, 9)
+    for i, j, a, b in ti.ndrange(3, 3, 3, 3):
+        h = mu * F[i, b] * F[a, j] + lam * F[i, j] * F[a, b]
+        if i == a:
+            h += S[b, j]
+        if j == b:
+            h += mu * B[i, a]
+        A[3 * i + j, 3 * a + b] = h
+    project_psd_sym(A, code)
+    # AM[3 i + j, 3 b + d] = sum_e A[3 i + j, 3 d + e] g_b[e]; block[3 a + c, 3 b + d] = sum_j g_a[j] AM[3 c + j, .]
+    AM = ti.Matrix.zero(ti.f64, 9, 12)
+    for r, b, d in ti.ndrange(9, 4, 3):
+        acc = 0.0
+        for e in range(3):
+            acc += A[r, 3 * d + e] * dFdx[t, b, e]
+        AM[r, 3 * b + d] = acc
+    for a, c, s in ti.ndrange(4, 3, 12):
+        acc = 0.0
+        for j in range(3):
+            acc += dFdx[t, a, j] * AM[3 * c + j, s]
+        blocks[t, 3 * a + c, s] = vol[t] * acc
+
+
+@fast_kernel
+def evaluate_green_strain_hessian(
+    x: ti.types.ndarray(), tets: ti.types.ndarray(), dFdx: ti.types.ndarray(), vol: ti.types.ndarray(),
+    mu: ti.f64, lam: ti.f64, code: ti.i32, blocks: ti.types.ndarray(),
+):
+    """``blocks[t] = V_t M^T f(A) M`` (12x12, N/m) of every tet (:func:`_green_strain_projected_block`)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
+    for t in range(tets.shape[0]):
+        _green_strain_projected_block(x, tets, dFdx, vol, mu, lam, code, t, blocks)
+
+
+@fast_kernel
+def evaluate_green_strain_hessian_rows(
+    x: ti.types.ndarray(), tets: ti.types.ndarray(), dFdx: ti.types.ndarray(), vol: ti.types.ndarray(),
+    mu: ti.f64, lam: ti.f64, code: ti.i32, rows: ti.types.ndarray(dtype=ti.i32, ndim=1), count: ti.i32,
+    blocks: ti.types.ndarray(),
+):
+    """:func:`evaluate_green_strain_hessian` of the tets ``t = rows[r]``, ``r < count`` only (the other blocks left
+    as they are): the blocks a projection of some copies' tets adds."""
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
+    for r in range(count):
+        _green_strain_projected_block(x, tets, dFdx, vol, mu, lam, code, rows[r], blocks)
+
+
+class TiGreenStrainSolid(GreenStrainSolid):
+    """:class:`GreenStrainSolid` whose energy, gradient and Hessian run as Taichi kernels.
+
+    Construction, validation, parameters and :meth:`parameter_gradient` are the NumPy class's (the adjoint path is
+    unchanged); the rest-shape arrays are uploaded to the device once.
+
+    Args:
+        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`GreenStrainSolid`.
+
+    Raises:
+        ConfigError: as :class:`GreenStrainSolid`, or the Taichi backend is not initialised
+            (:func:`sim_core.ti_backend.init_backend`).
+        MeshError: as :class:`GreenStrainSolid`.
+    """
+
+    def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
+        require_backend("TiGreenStrainSolid")
+        super().__init__(tets, x_rest, youngs_modulus, poisson_ratio)
+        self._tets_dev = upload_constant(self.tets, ti.i32)
+        self._dFdx_dev = upload_constant(self.per_tet.tet_dFdx, ti.f64)
+        self._vol_dev = upload_constant(self.tet_rest_volume, ti.f64)
+        self._x = DeviceArray(ti.f64)
+        self._tet_energy = DeviceArray(ti.f64)
+        self._grad = DeviceArray(ti.f64)
+        self._blocks = DeviceArray(ti.f64)
+
+    def energy(self, x: np.ndarray) -> float:
+        """Energy ``sum_t V_t psi(F_t)`` in J at positions ``x`` ``(n, 3)``."""
+        k = self.tets.shape[0]
+        if k == 0:
+            return 0.0
+        out = self._tet_energy.ensure((k,))
+        evaluate_green_strain_energy(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu,
+                                     self.lam, out)
+        return float(np.sum(out.to_numpy()))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N, shape ``(n, 3)``."""
+        x = np.asarray(x, dtype=float)
+        if self.tets.shape[0] == 0:
+            return np.zeros_like(x)
+        g = self._grad.ensure(x.shape)
+        evaluate_green_strain_gradient(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu,
+                                       self.lam, g)
+        return g.to_numpy()
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Per-tet 12x12 Hessian blocks in N/m (``projection`` as :meth:`GreenStrainSolid.hessian`).
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        code = projection_code(projection)
+        k = self.tets.shape[0]
+        if k == 0:
+            return HessianBlocks(self.tets, np.zeros((0, 12, 12)))
+        out = self._blocks.ensure((k, 12, 12))
+        evaluate_green_strain_hessian(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu,
+                                      self.lam, code, out)
+        return HessianBlocks(self.tets, out.to_numpy())
