@@ -7,10 +7,19 @@ and ``S = 2 mu E + lam tr(E) I`` (Bonet and Wood, Nonlinear Continuum Mechanics 
     psi = mu tr(E^2) + lam / 2 tr(E)^2,        P = F S,
     d2psi / dF_ij dF_ab = delta_ia S_bj + mu ((F F^T)_ia delta_jb + F_ib F_aj) + lam F_ij F_ab      (vec F: 3 i + j),
 
-the 9x9 ``d2psi/dF2`` formed per tet, its negative eigenvalues filtered per projection by the cyclic Jacobi method
-(:func:`sim_core.ti_kernels.linalg.project_psd_sym`: StVK has no compact analytic eigensystem, so the reference
-projects numerically too) and mapped to the vertices, ``H = V_t M^T A M`` with ``M = dvecF/dx`` (9x12,
-``M[3 i + j, 3 a + c] = delta_ic g_a[j]``, ``g_a`` row ``a`` of ``tet_dFdx``). Loops are serial on the CPU
+and the Hessian from the analytic eigensystem of ``d2psi/dF2`` (Smith, de Goes, Kim 2019, "Analytic Eigensystems
+for Isotropic Distortion Energies", sec. 5): in the singular values ``sigma`` of the rotation-variant SVD
+``F = U diag(sigma) V^T`` (``sigma_2 < 0`` for an inverted tet; ``psi`` is even in each)::
+
+    psi = mu / 4 sum_i (sigma_i^2 - 1)^2 + lam / 8 (I_C - 3)^2,           I_C = sum_i sigma_i^2,
+    d2psi / dsigma_i dsigma_j = delta_ij (mu (3 sigma_i^2 - 1) + lam / 2 (I_C - 3)) + lam sigma_i sigma_j,
+    twist_k = (psi_i + psi_j) / (sigma_i + sigma_j) = mu (sigma_i^2 - sigma_i sigma_j + sigma_j^2 - 1) + c,
+    flip_k  = (psi_i - psi_j) / (sigma_i - sigma_j) = mu (sigma_i^2 + sigma_i sigma_j + sigma_j^2 - 1) + c,
+
+with ``c = lam / 2 (I_C - 3)``, ``psi_i = d psi / d sigma_i`` and ``(i, j, k)`` a cyclic triple (polynomials: no
+division by coinciding singular values); each eigenvalue is filtered per projection and the modes mapped to the vertices as the Stable Neo-Hookean kernel's
+(:func:`sim_core.energies.neohookean.kernel.isotropic_projected_block`). The reference projects the 9x9 matrix
+numerically; the two agree to round-off (one projection of one symmetric matrix). Loops are serial on the CPU
 (``serial_loops``): sums into shared vertices in element order, reproducible bit for bit.
 """
 
@@ -21,11 +30,12 @@ import numpy as np
 
 from sim_core.energies.base import HessianBlocks, Projection
 from sim_core.energies.green_strain.reference import GreenStrainSolid
-from sim_core.energies.neohookean.kernel import _tet_deformation_gradient
+from sim_core.energies.neohookean.kernel import (_rotation_variant_svd, _tet_deformation_gradient,
+                                                isotropic_projected_block)
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.linalg import matmul, project_psd_sym, projection_code
+from sim_core.ti_kernels.linalg import matmul, projection_code
 
 
 @ti.func
@@ -82,32 +92,25 @@ def evaluate_green_strain_gradient(
 @ti.func
 def _green_strain_projected_block(x: ti.template(), tets: ti.template(), dFdx: ti.template(), vol: ti.template(),
                                   mu: ti.f64, lam: ti.f64, code: ti.i32, t: ti.i32, blocks: ti.template()):
-    """``blocks[t] = V_t M^T f(A) M`` (12x12, N/m) of tet ``t``: ``A`` the 9x9 ``d2psi/dF2`` (module docstring),
-    ``f`` the projection ``code`` of its eigenvalues (none where ``code`` is 0 or none is negative)."""
+    """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) of tet ``t`` from the analytic eigensystem of
+    ``psi(sigma)`` (module docstring; :func:`~sim_core.energies.neohookean.kernel.isotropic_projected_block`)."""
     F = _tet_deformation_gradient(x, tets, dFdx, t)
-    _, _, S = green_strain_stress(F, mu, lam)
-    B = matmul(F, F.transpose())
-    A = ti.Matrix.zero(ti.f64, 9, 9)
-    for i, j, a, b in ti.ndrange(3, 3, 3, 3):
-        h = mu * F[i, b] * F[a, j] + lam * F[i, j] * F[a, b]
-        if i == a:
-            h += S[b, j]
-        if j == b:
-            h += mu * B[i, a]
-        A[3 * i + j, 3 * a + b] = h
-    project_psd_sym(A, code)
-    # AM[3 i + j, 3 b + d] = sum_e A[3 i + j, 3 d + e] g_b[e]; block[3 a + c, 3 b + d] = sum_j g_a[j] AM[3 c + j, .]
-    AM = ti.Matrix.zero(ti.f64, 9, 12)
-    for r, b, d in ti.ndrange(9, 4, 3):
-        acc = 0.0
-        for e in range(3):
-            acc += A[r, 3 * d + e] * dFdx[t, b, e]
-        AM[r, 3 * b + d] = acc
-    for a, c, s in ti.ndrange(4, 3, 12):
-        acc = 0.0
-        for j in range(3):
-            acc += dFdx[t, a, j] * AM[3 * c + j, s]
-        blocks[t, 3 * a + c, s] = vol[t] * acc
+    U, sigma, V = _rotation_variant_svd(F)
+    s2 = sigma * sigma
+    c = 0.5 * lam * (s2.sum() - 3.0) - mu
+    S = lam * sigma.outer_product(sigma)
+    for i in ti.static(range(3)):
+        S[i, i] += 3.0 * mu * s2[i] + c
+    # pair (i, j) of mode k: (1, 2), (2, 0), (0, 1)
+    twist = ti.Vector.zero(ti.f64, 3)
+    flip = ti.Vector.zero(ti.f64, 3)
+    for k in ti.static(range(3)):
+        i = ti.static((1, 2, 0)[k])
+        j = ti.static((2, 0, 1)[k])
+        base = mu * (s2[i] + s2[j]) + c
+        twist[k] = base - mu * sigma[i] * sigma[j]
+        flip[k] = base + mu * sigma[i] * sigma[j]
+    isotropic_projected_block(U, sigma, V, S, twist, flip, dFdx, vol, code, t, blocks)
 
 
 @fast_kernel

@@ -130,27 +130,16 @@ def evaluate_snh_gradient(
 
 
 @ti.func
-def _snh_projected_block(x: ti.template(), tets: ti.template(), dFdx: ti.template(), vol: ti.template(), mu: ti.f64,
-                         lam: ti.f64, code: ti.i32, t: ti.i32, blocks: ti.template()):
-    """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) of tet ``t`` from the analytic eigensystem."""
-    alpha = 1.0 + 0.75 * mu / lam
-    F = _tet_deformation_gradient(x, tets, dFdx, t)
-    U, sigma, V = _rotation_variant_svd(F)
-    I_C = sigma.dot(sigma)
-    J = sigma[0] * sigma[1] * sigma[2]
-    mu_t = mu * (1.0 - 1.0 / (I_C + 1.0))
-    stretch = lam * (J - alpha)
-    dJ = ti.Vector([sigma[1] * sigma[2], sigma[2] * sigma[0], sigma[0] * sigma[1]])
-    S = (2.0 * mu / (I_C + 1.0) ** 2) * sigma.outer_product(sigma) + lam * dJ.outer_product(dJ)
-    for i in ti.static(range(3)):
-        S[i, i] += mu_t
-    # pairs (i, j) of the twist/flip modes; the third index c: (1, 2) -> 0, (2, 0) -> 1, (0, 1) -> 2
-    S[1, 2] += stretch * sigma[0]
-    S[2, 1] += stretch * sigma[0]
-    S[2, 0] += stretch * sigma[1]
-    S[0, 2] += stretch * sigma[1]
-    S[0, 1] += stretch * sigma[2]
-    S[1, 0] += stretch * sigma[2]
+def isotropic_projected_block(U, sigma, V, S: ti.template(), twist, flip, dFdx: ti.template(), vol: ti.template(),
+                              code: ti.i32, t: ti.i32, blocks: ti.template()):
+    """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) of tet ``t`` from the analytic eigensystem of an
+    isotropic energy's ``d2psi/dF2`` (Smith, de Goes, Kim 2019, "Analytic Eigensystems for Isotropic Distortion
+    Energies", sec. 5; Smith et al. 2018, sec. 4.2): three scaling modes ``U diag(z_m) V^T`` from the eigenvectors
+    ``z_m`` of the 3x3 ``S = d2psi/dsigma2`` (diagonalised here, in place), and per pair ``(i, j)`` (third index
+    ``k``) a twist ``U (e_i e_j^T - e_j e_i^T) V^T / sqrt 2`` of eigenvalue ``twist[k]`` and a flip
+    ``U (e_i e_j^T + e_j e_i^T) V^T / sqrt 2`` of eigenvalue ``flip[k]``; ``f`` the projection ``code``
+    (:func:`~sim_core.ti_kernels.linalg.filter_eigenvalue`), ``y_m = (dvecF/dx)^T q_m``. ``U, sigma, V``: the
+    rotation-variant SVD of ``F`` (:func:`_rotation_variant_svd`)."""
     Z = ti.Matrix.zero(ti.f64, 3, 3)
     jacobi_eigh(S, Z)
     # h[a, :] = V^T g_a with g_a = dFdx[t, a]
@@ -172,8 +161,8 @@ def _snh_projected_block(x: ti.template(), tets: ti.template(), dFdx: ti.templat
     for k in ti.static(range(3)):
         i = ti.static((1, 2, 0)[k])
         j = ti.static((2, 0, 1)[k])
-        w[3 + k] = filter_eigenvalue(mu_t + stretch * sigma[k], code)
-        w[6 + k] = filter_eigenvalue(mu_t - stretch * sigma[k], code)
+        w[3 + k] = filter_eigenvalue(twist[k], code)
+        w[6 + k] = filter_eigenvalue(flip[k], code)
         for a in ti.static(range(4)):
             for c in ti.static(range(3)):
                 p = U[c, i] * h[a, j]
@@ -188,6 +177,35 @@ def _snh_projected_block(x: ti.template(), tets: ti.template(), dFdx: ti.templat
             acc *= vol[t]
             blocks[t, r, s] = acc
             blocks[t, s, r] = acc
+
+
+@ti.func
+def _snh_projected_block(x: ti.template(), tets: ti.template(), dFdx: ti.template(), vol: ti.template(), mu: ti.f64,
+                         lam: ti.f64, code: ti.i32, t: ti.i32, blocks: ti.template()):
+    """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) of tet ``t`` from the analytic eigensystem
+    (:func:`isotropic_projected_block`; twist ``mu_t + lam (J - alpha) sigma_k``, flip ``mu_t - lam (J - alpha)
+    sigma_k``, Smith et al. 2018, eqs. 27-28)."""
+    alpha = 1.0 + 0.75 * mu / lam
+    F = _tet_deformation_gradient(x, tets, dFdx, t)
+    U, sigma, V = _rotation_variant_svd(F)
+    I_C = sigma.dot(sigma)
+    J = sigma[0] * sigma[1] * sigma[2]
+    mu_t = mu * (1.0 - 1.0 / (I_C + 1.0))
+    stretch = lam * (J - alpha)
+    dJ = ti.Vector([sigma[1] * sigma[2], sigma[2] * sigma[0], sigma[0] * sigma[1]])
+    S = (2.0 * mu / (I_C + 1.0) ** 2) * sigma.outer_product(sigma) + lam * dJ.outer_product(dJ)
+    for i in ti.static(range(3)):
+        S[i, i] += mu_t
+    # pairs (i, j) of the twist/flip modes; the third index c: (1, 2) -> 0, (2, 0) -> 1, (0, 1) -> 2
+    S[1, 2] += stretch * sigma[0]
+    S[2, 1] += stretch * sigma[0]
+    S[2, 0] += stretch * sigma[1]
+    S[0, 2] += stretch * sigma[1]
+    S[0, 1] += stretch * sigma[2]
+    S[1, 0] += stretch * sigma[2]
+    twist = ti.Vector([mu_t + stretch * sigma[0], mu_t + stretch * sigma[1], mu_t + stretch * sigma[2]])
+    flip = ti.Vector([mu_t - stretch * sigma[0], mu_t - stretch * sigma[1], mu_t - stretch * sigma[2]])
+    isotropic_projected_block(U, sigma, V, S, twist, flip, dFdx, vol, code, t, blocks)
 
 
 @fast_kernel
