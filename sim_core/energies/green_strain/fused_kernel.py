@@ -24,10 +24,11 @@ import numpy as np
 
 from sim_core.energies.green_strain.kernel import (evaluate_green_strain_hessian, evaluate_green_strain_hessian_rows,
                                                    green_strain_psi, green_strain_stress)
-from sim_core.energies.neohookean.fused_kernel import FusedStableNeoHookean, _tet_state
+from sim_core.energies.neohookean.fused_kernel import (FusedStableNeoHookean, _tet_state, add_projected_with,
+                                                      evaluate_with)
 from sim_core.ti_backend import serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.block_projection import add_blocks, add_upper_entry, upper_index
+from sim_core.ti_kernels.block_projection import add_upper_entry, upper_index
 from sim_core.ti_kernels.launch import summing_kernel
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -109,25 +110,14 @@ def green_strain_energy_gradient_hessian(
 def remote_evaluate(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
     """:meth:`FusedGreenStrainSolid.evaluate` from its ``offload_recipe`` arguments ``(tets, dFdx, vol, upper, mu,
     lam)``: energy in J (returned), the gradient (N) added to ``grad`` ``(n, 3)`` and the exact Hessian (N/m) to
-    ``values`` (the function an :class:`~sim_core.elastic_worker.ElasticWorker` runs; the same kernel on the same
-    arrays, so the same values bit for bit)."""
-    tets, dFdx, vol, upper, mu, lam = args
-    if tets.shape[0] == 0:
-        return 0.0
-    return float(green_strain_energy_gradient_hessian(x, tets, dFdx, vol, upper, mu, lam, grad, values))
+    ``values`` (the function an :class:`~sim_core.elastic_worker.ElasticWorker` runs)."""
+    return evaluate_with(green_strain_energy_gradient_hessian, args, x, grad, values)
 
 
 def remote_add_projected(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
     """:meth:`FusedGreenStrainSolid.add_projected` from its ``offload_projected_recipe`` arguments ``(tets, dFdx,
-    vol, slots, mu, lam, projection code)``: the projected Hessian blocks (N/m) added into ``values`` (``grad``
-    untouched); returns 0.0."""
-    tets, dFdx, vol, slots, mu, lam, code = args
-    if tets.shape[0] == 0:
-        return 0.0
-    blocks = np.zeros((tets.shape[0], 12, 12))
-    evaluate_green_strain_hessian(x, tets, dFdx, vol, mu, lam, code, blocks)
-    add_blocks(blocks, slots, values)
-    return 0.0
+    vol, slots, mu, lam, projection code)``: the projected Hessian blocks (N/m) added into ``values``; returns 0.0."""
+    return add_projected_with(evaluate_green_strain_hessian, args, x, values)
 
 
 class FusedGreenStrainSolid(FusedStableNeoHookean):

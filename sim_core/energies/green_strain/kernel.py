@@ -17,25 +17,22 @@ for Isotropic Distortion Energies", sec. 5): in the singular values ``sigma`` of
     flip_k  = (psi_i - psi_j) / (sigma_i - sigma_j) = mu (sigma_i^2 + sigma_i sigma_j + sigma_j^2 - 1) + c,
 
 with ``c = lam / 2 (I_C - 3)``, ``psi_i = d psi / d sigma_i`` and ``(i, j, k)`` a cyclic triple (polynomials: no
-division by coinciding singular values); each eigenvalue is filtered per projection and the modes mapped to the vertices as the Stable Neo-Hookean kernel's
-(:func:`sim_core.energies.neohookean.kernel.isotropic_projected_block`). The reference projects the 9x9 matrix
-numerically; the two agree to round-off (one projection of one symmetric matrix). Loops are serial on the CPU
-(``serial_loops``): sums into shared vertices in element order, reproducible bit for bit.
+division by coinciding singular values); each eigenvalue is filtered per projection and the modes mapped to the
+vertices as the Stable Neo-Hookean kernel's (:func:`sim_core.energies.neohookean.kernel.isotropic_projected_block`).
+The reference projects the 9x9 matrix numerically; the two agree to round-off (one projection of one symmetric
+matrix). Loops are serial on the CPU (``serial_loops``): sums into shared vertices in element order, reproducible bit
+for bit.
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
 # objects (string annotations are rejected).
 
-import numpy as np
-
-from sim_core.energies.base import HessianBlocks, Projection
 from sim_core.energies.green_strain.reference import GreenStrainSolid
-from sim_core.energies.neohookean.kernel import (_rotation_variant_svd, _tet_deformation_gradient,
+from sim_core.energies.neohookean.kernel import (TetSolidKernels, _rotation_variant_svd, _tet_deformation_gradient,
                                                 isotropic_projected_block)
-from sim_core.ti_backend import require_backend, serial_loops, ti
-from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
+from sim_core.ti_backend import serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.linalg import matmul, projection_code
+from sim_core.ti_kernels.linalg import matmul
 
 
 @ti.func
@@ -137,11 +134,10 @@ def evaluate_green_strain_hessian_rows(
         _green_strain_projected_block(x, tets, dFdx, vol, mu, lam, code, rows[r], blocks)
 
 
-class TiGreenStrainSolid(GreenStrainSolid):
-    """:class:`GreenStrainSolid` whose energy, gradient and Hessian run as Taichi kernels.
-
-    Construction, validation, parameters and :meth:`parameter_gradient` are the NumPy class's (the adjoint path is
-    unchanged); the rest-shape arrays are uploaded to the device once.
+class TiGreenStrainSolid(TetSolidKernels, GreenStrainSolid):
+    """:class:`GreenStrainSolid` whose energy, gradient and Hessian run as Taichi kernels
+    (:class:`~sim_core.energies.neohookean.kernel.TetSolidKernels`: :func:`evaluate_green_strain_energy`,
+    :func:`evaluate_green_strain_gradient`, :func:`evaluate_green_strain_hessian`).
 
     Args:
         tets, x_rest, youngs_modulus, poisson_ratio: as :class:`GreenStrainSolid`.
@@ -152,48 +148,6 @@ class TiGreenStrainSolid(GreenStrainSolid):
         MeshError: as :class:`GreenStrainSolid`.
     """
 
-    def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
-        require_backend("TiGreenStrainSolid")
-        super().__init__(tets, x_rest, youngs_modulus, poisson_ratio)
-        self._tets_dev = upload_constant(self.tets, ti.i32)
-        self._dFdx_dev = upload_constant(self.per_tet.tet_dFdx, ti.f64)
-        self._vol_dev = upload_constant(self.tet_rest_volume, ti.f64)
-        self._x = DeviceArray(ti.f64)
-        self._tet_energy = DeviceArray(ti.f64)
-        self._grad = DeviceArray(ti.f64)
-        self._blocks = DeviceArray(ti.f64)
-
-    def energy(self, x: np.ndarray) -> float:
-        """Energy ``sum_t V_t psi(F_t)`` in J at positions ``x`` ``(n, 3)``."""
-        k = self.tets.shape[0]
-        if k == 0:
-            return 0.0
-        out = self._tet_energy.ensure((k,))
-        evaluate_green_strain_energy(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu,
-                                     self.lam, out)
-        return float(np.sum(out.to_numpy()))
-
-    def gradient(self, x: np.ndarray) -> np.ndarray:
-        """dE/dx in N, shape ``(n, 3)``."""
-        x = np.asarray(x, dtype=float)
-        if self.tets.shape[0] == 0:
-            return np.zeros_like(x)
-        g = self._grad.ensure(x.shape)
-        evaluate_green_strain_gradient(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu,
-                                       self.lam, g)
-        return g.to_numpy()
-
-    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
-        """Per-tet 12x12 Hessian blocks in N/m (``projection`` as :meth:`GreenStrainSolid.hessian`).
-
-        Raises:
-            ValueError: unknown projection.
-        """
-        code = projection_code(projection)
-        k = self.tets.shape[0]
-        if k == 0:
-            return HessianBlocks(self.tets, np.zeros((0, 12, 12)))
-        out = self._blocks.ensure((k, 12, 12))
-        evaluate_green_strain_hessian(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu,
-                                      self.lam, code, out)
-        return HessianBlocks(self.tets, out.to_numpy())
+    energy_kernel = staticmethod(evaluate_green_strain_energy)
+    gradient_kernel = staticmethod(evaluate_green_strain_gradient)
+    hessian_kernel = staticmethod(evaluate_green_strain_hessian)

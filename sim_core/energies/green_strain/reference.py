@@ -23,8 +23,8 @@ Derivatives (row-major ``vec F``, index ``3 i + j``)::
 a symmetric 9x9 per tet, mapped by ``dF/dx`` to 12x12 vertex blocks (the exact ones contracted in closed form,
 :meth:`GreenStrainSolid.exact_blocks`); the PSD projection clamps (or flips) its negative eigenvalues per tet
 (:func:`sim_core.energies.base.project_psd`, numerically here; the Taichi kernels use StVK's analytic eigensystem in
-the singular values, :mod:`sim_core.energies.green_strain.kernel`). Inverted tets are not barriered (StVK's energy does not grow without bound as ``det F -> 0``); the
-pressed gel's strains (< 15 %) are far from it.
+the singular values, :mod:`sim_core.energies.green_strain.kernel`). Inverted tets are not barriered (StVK's energy
+does not grow without bound as ``det F -> 0``); the pressed gel's strains (< 15 %) are far from it.
 """
 
 from __future__ import annotations

@@ -157,10 +157,7 @@ def remote_evaluate(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.nda
     to ``grad`` ``(n, 3)`` and the exact Hessian (N/m) to ``values`` (the function an
     :class:`~sim_core.elastic_worker.ElasticWorker` runs; the same kernel on the same arrays, so the
     same values bit for bit)."""
-    tets, dFdx, vol, upper, mu, lam = args
-    if tets.shape[0] == 0:
-        return 0.0
-    return float(snh_energy_gradient_hessian(x, tets, dFdx, vol, upper, mu, lam, grad, values))
+    return evaluate_with(snh_energy_gradient_hessian, args, x, grad, values)
 
 
 def remote_add_projected(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
@@ -168,11 +165,27 @@ def remote_add_projected(args: tuple, x: np.ndarray, grad: np.ndarray, values: n
     :meth:`~FusedStableNeoHookean.offload_projected_recipe` arguments ``(tets, dFdx, vol, slots, mu,
     lam, projection code)``: the projected Hessian blocks (N/m) added into ``values`` (``grad``
     untouched); returns 0.0."""
+    return add_projected_with(evaluate_snh_hessian, args, x, values)
+
+
+def evaluate_with(kernel, args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+    """A fused tet solid's ``remote_evaluate`` through its fused ``kernel`` (:func:`snh_energy_gradient_hessian` or
+    another law's of the same arguments) on ``args = (tets, dFdx, vol, upper, mu, lam)``: energy in J."""
+    tets, dFdx, vol, upper, mu, lam = args
+    if tets.shape[0] == 0:
+        return 0.0
+    return float(kernel(x, tets, dFdx, vol, upper, mu, lam, grad, values))
+
+
+def add_projected_with(kernel, args: tuple, x: np.ndarray, values: np.ndarray) -> float:
+    """A fused tet solid's ``remote_add_projected`` through its projected-block ``kernel``
+    (:func:`~sim_core.energies.neohookean.kernel.evaluate_snh_hessian` or another law's of the same arguments) on
+    ``args = (tets, dFdx, vol, slots, mu, lam, projection code)``: the blocks added into ``values``; returns 0.0."""
     tets, dFdx, vol, slots, mu, lam, code = args
     if tets.shape[0] == 0:
         return 0.0
     blocks = np.zeros((tets.shape[0], 12, 12))
-    evaluate_snh_hessian(x, tets, dFdx, vol, mu, lam, code, blocks)
+    kernel(x, tets, dFdx, vol, mu, lam, code, blocks)
     add_blocks(blocks, slots, values)
     return 0.0
 

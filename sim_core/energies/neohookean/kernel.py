@@ -232,23 +232,25 @@ def evaluate_snh_hessian_rows(
         _snh_projected_block(x, tets, dFdx, vol, mu, lam, code, rows[r], blocks)
 
 
-class TiStableNeoHookean(StableNeoHookean):
-    """:class:`StableNeoHookean` whose energy, gradient and Hessian run as Taichi kernels.
-
-    Construction, validation, parameters and :meth:`parameter_gradient` are the NumPy class's
-    (the adjoint path is unchanged); the rest-shape arrays are uploaded to the device once.
-
-    Args:
-        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`StableNeoHookean`.
+class TetSolidKernels:
+    """Mixin of a tet solid's Taichi twin (before its NumPy class in the bases): energy, gradient and Hessian blocks
+    from the kernels named by :attr:`energy_kernel`, :attr:`gradient_kernel` and :attr:`hessian_kernel` (each
+    ``(x, tets, dFdx, vol, mu, lam, [code,] out)``, the NumPy class's ``mu``, ``lam``); construction, validation,
+    parameters and ``parameter_gradient`` are the NumPy class's, whose rest-shape arrays (``tets``, ``tet_dFdx``,
+    ``tet_rest_volume``) are uploaded to the device once.
 
     Raises:
-        ConfigError: as :class:`StableNeoHookean`, or the Taichi backend is not initialised
+        ConfigError: as the NumPy class, or the Taichi backend is not initialised
             (:func:`sim_core.ti_backend.init_backend`).
-        MeshError: as :class:`StableNeoHookean`.
+        MeshError: as the NumPy class.
     """
 
+    energy_kernel = staticmethod(evaluate_snh_energy)
+    gradient_kernel = staticmethod(evaluate_snh_gradient)
+    hessian_kernel = staticmethod(evaluate_snh_hessian)
+
     def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
-        require_backend("TiStableNeoHookean")
+        require_backend(type(self).__name__)
         super().__init__(tets, x_rest, youngs_modulus, poisson_ratio)
         self._tets_dev = upload_constant(self.tets, ti.i32)
         self._dFdx_dev = upload_constant(self.tet_dFdx, ti.f64)
@@ -264,7 +266,7 @@ class TiStableNeoHookean(StableNeoHookean):
         if k == 0:
             return 0.0
         out = self._tet_energy.ensure((k,))
-        evaluate_snh_energy(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam, out)
+        self.energy_kernel(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam, out)
         return float(np.sum(out.to_numpy()))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
@@ -273,11 +275,11 @@ class TiStableNeoHookean(StableNeoHookean):
         if self.tets.shape[0] == 0:
             return np.zeros_like(x)
         g = self._grad.ensure(x.shape)
-        evaluate_snh_gradient(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam, g)
+        self.gradient_kernel(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam, g)
         return g.to_numpy()
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
-        """Per-tet 12x12 Hessian blocks in N/m (``projection`` as :meth:`StableNeoHookean.hessian`).
+        """Per-tet 12x12 Hessian blocks in N/m (``projection`` as the NumPy class's ``hessian``).
 
         Raises:
             ValueError: unknown projection.
@@ -287,6 +289,20 @@ class TiStableNeoHookean(StableNeoHookean):
         if k == 0:
             return HessianBlocks(self.tets, np.zeros((0, 12, 12)))
         out = self._blocks.ensure((k, 12, 12))
-        evaluate_snh_hessian(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam,
-                             code, out)
+        self.hessian_kernel(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam,
+                            code, out)
         return HessianBlocks(self.tets, out.to_numpy())
+
+
+class TiStableNeoHookean(TetSolidKernels, StableNeoHookean):
+    """:class:`StableNeoHookean` whose energy, gradient and Hessian run as Taichi kernels (:class:`TetSolidKernels`:
+    :func:`evaluate_snh_energy`, :func:`evaluate_snh_gradient`, :func:`evaluate_snh_hessian`).
+
+    Args:
+        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`StableNeoHookean`.
+
+    Raises:
+        ConfigError: as :class:`StableNeoHookean`, or the Taichi backend is not initialised
+            (:func:`sim_core.ti_backend.init_backend`).
+        MeshError: as :class:`StableNeoHookean`.
+    """
