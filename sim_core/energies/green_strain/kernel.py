@@ -8,7 +8,7 @@ and ``S = 2 mu E + lam tr(E) I`` (Bonet and Wood, Nonlinear Continuum Mechanics 
     d2psi / dF_ij dF_ab = delta_ia S_bj + mu ((F F^T)_ia delta_jb + F_ib F_aj) + lam F_ij F_ab      (vec F: 3 i + j),
 
 and the Hessian from the analytic eigensystem of ``d2psi/dF2`` (Smith, de Goes, Kim 2019, "Analytic Eigensystems
-for Isotropic Distortion Energies", sec. 5): in the singular values ``sigma`` of the rotation-variant SVD
+for Isotropic Distortion Energies", ACM TOG 38(1)): in the singular values ``sigma`` of the rotation-variant SVD
 ``F = U diag(sigma) V^T`` (``sigma_2 < 0`` for an inverted tet; ``psi`` is even in each)::
 
     psi = mu / 4 sum_i (sigma_i^2 - 1)^2 + lam / 8 (I_C - 3)^2,           I_C = sum_i sigma_i^2,

@@ -134,9 +134,9 @@ def isotropic_projected_block(U, sigma, V, S: ti.template(), twist, flip, dFdx: 
                               code: ti.i32, t: ti.i32, blocks: ti.template()):
     """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) of tet ``t`` from the analytic eigensystem of an
     isotropic energy's ``d2psi/dF2`` (Smith, de Goes, Kim 2019, "Analytic Eigensystems for Isotropic Distortion
-    Energies", sec. 5; Smith et al. 2018, sec. 4.2): three scaling modes ``U diag(z_m) V^T`` from the eigenvectors
-    ``z_m`` of the 3x3 ``S = d2psi/dsigma2`` (diagonalised here, in place), and per pair ``(i, j)`` (third index
-    ``k``) a twist ``U (e_i e_j^T - e_j e_i^T) V^T / sqrt 2`` of eigenvalue ``twist[k]`` and a flip
+    Energies", ACM TOG 38(1); Smith et al. 2018, sec. 4.2): three scaling modes ``U diag(z_m) V^T`` from the
+    eigenvectors ``z_m`` of the 3x3 ``S = d2psi/dsigma2`` (diagonalised here, in place), and per pair ``(i, j)``
+    (third index ``k``) a twist ``U (e_i e_j^T - e_j e_i^T) V^T / sqrt 2`` of eigenvalue ``twist[k]`` and a flip
     ``U (e_i e_j^T + e_j e_i^T) V^T / sqrt 2`` of eigenvalue ``flip[k]``; ``f`` the projection ``code``
     (:func:`~sim_core.ti_kernels.linalg.filter_eigenvalue`), ``y_m = (dvecF/dx)^T q_m``. ``U, sigma, V``: the
     rotation-variant SVD of ``F`` (:func:`_rotation_variant_svd`)."""
