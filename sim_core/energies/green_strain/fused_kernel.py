@@ -25,7 +25,7 @@ import numpy as np
 from sim_core.energies.green_strain.kernel import (evaluate_green_strain_hessian, evaluate_green_strain_hessian_rows,
                                                    green_strain_psi, green_strain_stress)
 from sim_core.energies.neohookean.fused_kernel import (FusedStableNeoHookean, _tet_state, add_projected_with,
-                                                      evaluate_with)
+                                                      evaluate_with, free_corners)
 from sim_core.ti_backend import serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import add_upper_entry, upper_index
@@ -84,11 +84,7 @@ def green_strain_energy_gradient_hessian(
         B = F @ F.transpose()
         lGF = lam * GF  # the left factors of the entries' products, formed once per tet
         muGF = mu * GF
-        free = ti.Vector.zero(ti.i32, 4)  # per corner: has a free DoF (a stored diagonal entry)
-        for a in ti.static(range(4)):
-            for c in ti.static(range(3)):
-                if upper[t, upper_index(12, 3 * a + c, 3 * a + c)] != -1:
-                    free[a] = 1
+        free = free_corners(upper, t)  # per corner: has a free DoF
         for a in range(4):
             if free[a] == 1:
                 ga = ti.Vector([G[a, 0], G[a, 1], G[a, 2]])

@@ -96,6 +96,18 @@ def _add_entry(values: ti.template(), upper: ti.template(), t, a, b, c: ti.templ
         add_upper_entry(values, slot, h)
 
 
+@ti.func
+def free_corners(upper: ti.template(), t):
+    """Per corner of tet ``t``: 1 where it has a free DoF (a stored diagonal entry in the packed upper slot table
+    ``upper``), else 0 (a ``ti.Vector`` of 4 int32)."""
+    free = ti.Vector.zero(ti.i32, 4)
+    for a in ti.static(range(4)):
+        for c in ti.static(range(3)):
+            if upper[t, upper_index(12, 3 * a + c, 3 * a + c)] != -1:
+                free[a] = 1
+    return free
+
+
 @summing_kernel
 def snh_energy_gradient_hessian(
     x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, upper: _I32_2, mu: ti.f64, lam: ti.f64,
@@ -128,11 +140,7 @@ def snh_energy_gradient_hessian(
         GK = G @ cof.transpose()  # GK[a, c] = g_a . k_c
         bGF = beta * GF  # the left factors of the entries' products, formed once per tet
         lGK = lam * GK
-        free = ti.Vector.zero(ti.i32, 4)  # per corner: has a free DoF (a stored diagonal entry)
-        for a in ti.static(range(4)):
-            for c in ti.static(range(3)):
-                if upper[t, upper_index(12, 3 * a + c, 3 * a + c)] != -1:
-                    free[a] = 1
+        free = free_corners(upper, t)
         for a in range(4):
             if free[a] == 1:
                 ga = ti.Vector([G[a, 0], G[a, 1], G[a, 2]])
