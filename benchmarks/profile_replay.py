@@ -1,7 +1,7 @@
 """Profile one replay of a recording as ``thinshell sysid`` makes it: where a step's CPU time goes.
 
 Usage: ``python -m benchmarks.profile_replay BAG [--no-drive] [--tangents] [--dt 0.01] [--arch cpu] [--top 25]
-[--out PROF]``.
+[--out PROF] [--gel-element LAW]``.
 
 Builds the replay as :func:`sysid.fit_recording.fit_recording` does (the bag's scene, ``--dt`` steps, the
 effector's drive fitted in closed form unless ``--no-drive``), replays it once untimed (kernels compiled or
@@ -52,6 +52,8 @@ def _options() -> argparse.Namespace:
     parser.add_argument("--arch", choices=("numpy", "cpu", "cuda"), default="cpu",
                         help="elastic terms of the replay (thinshell sysid's default: cpu)")
     parser.add_argument("--t-max", type=float, default=None, help="replay only the first T_MAX s")
+    parser.add_argument("--gel-element", default=None,
+                        help="the gel's element and law (simulation.gel_element; default the scene's)")
     parser.add_argument("--top", type=int, default=25, help="functions listed by own CPU time")
     parser.add_argument("--out", default=None, help="write the cProfile statistics to this file")
     parser.add_argument("--no-profile", action="store_true",
@@ -103,7 +105,8 @@ def main() -> None:
     from sysid.replay_drive import drive_sensitivities
 
     evidence = load_evidence(opts.bag, include_image="auto")
-    model = ObservationModel(evidence, dt=opts.dt, t_max=opts.t_max, arch=opts.arch)
+    model = ObservationModel(evidence, dt=opts.dt, t_max=opts.t_max, arch=opts.arch,
+                             simulation=None if opts.gel_element is None else {"gel_element": opts.gel_element})
     model.compile_kernels()
     if not opts.no_drive and model.sensor is not None:
         drive = fit_drive(model)

@@ -41,7 +41,7 @@ from typing import Protocol, Sequence, runtime_checkable
 import numpy as np
 
 from sim_core.assembly import StaticPattern
-from sim_core.energies import kirchhoff_bending, membrane, neohookean
+from sim_core.energies import green_strain, kirchhoff_bending, membrane, neohookean
 from sim_core.energies.base import CopyEnergies, ElasticEquivalent, declares, positions_key
 from sim_core.worker_recipe import Recipe
 
@@ -51,7 +51,8 @@ OFFLOAD_MIN_ELEMENTS = 256
 
 
 FUSED_KERNELS: dict[tuple[str, str], tuple[str, str]] = {
-    **neohookean.FUSED_KERNELS, **membrane.FUSED_KERNELS, **kirchhoff_bending.FUSED_KERNELS,
+    **neohookean.FUSED_KERNELS, **green_strain.FUSED_KERNELS, **membrane.FUSED_KERNELS,
+    **kirchhoff_bending.FUSED_KERNELS,
     ("sim_core.candidates.anisotropic_bending", "AnisotropicBendingCorrection"):
         ("sim_core.energies.hinge_bending.fused_kernel", "FusedAnisotropicBending"),
 }

@@ -96,6 +96,18 @@ def _add_entry(values: ti.template(), upper: ti.template(), t, a, b, c: ti.templ
         add_upper_entry(values, slot, h)
 
 
+@ti.func
+def free_corners(upper: ti.template(), t):
+    """Per corner of tet ``t``: 1 where it has a free DoF (a stored diagonal entry in the packed upper slot table
+    ``upper``), else 0 (a ``ti.Vector`` of 4 int32)."""
+    free = ti.Vector.zero(ti.i32, 4)
+    for a in ti.static(range(4)):
+        for c in ti.static(range(3)):
+            if upper[t, upper_index(12, 3 * a + c, 3 * a + c)] != -1:
+                free[a] = 1
+    return free
+
+
 @summing_kernel
 def snh_energy_gradient_hessian(
     x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, upper: _I32_2, mu: ti.f64, lam: ti.f64,
@@ -128,11 +140,7 @@ def snh_energy_gradient_hessian(
         GK = G @ cof.transpose()  # GK[a, c] = g_a . k_c
         bGF = beta * GF  # the left factors of the entries' products, formed once per tet
         lGK = lam * GK
-        free = ti.Vector.zero(ti.i32, 4)  # per corner: has a free DoF (a stored diagonal entry)
-        for a in ti.static(range(4)):
-            for c in ti.static(range(3)):
-                if upper[t, upper_index(12, 3 * a + c, 3 * a + c)] != -1:
-                    free[a] = 1
+        free = free_corners(upper, t)
         for a in range(4):
             if free[a] == 1:
                 ga = ti.Vector([G[a, 0], G[a, 1], G[a, 2]])
@@ -157,10 +165,7 @@ def remote_evaluate(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.nda
     to ``grad`` ``(n, 3)`` and the exact Hessian (N/m) to ``values`` (the function an
     :class:`~sim_core.elastic_worker.ElasticWorker` runs; the same kernel on the same arrays, so the
     same values bit for bit)."""
-    tets, dFdx, vol, upper, mu, lam = args
-    if tets.shape[0] == 0:
-        return 0.0
-    return float(snh_energy_gradient_hessian(x, tets, dFdx, vol, upper, mu, lam, grad, values))
+    return evaluate_with(snh_energy_gradient_hessian, args, x, grad, values)
 
 
 def remote_add_projected(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
@@ -168,11 +173,27 @@ def remote_add_projected(args: tuple, x: np.ndarray, grad: np.ndarray, values: n
     :meth:`~FusedStableNeoHookean.offload_projected_recipe` arguments ``(tets, dFdx, vol, slots, mu,
     lam, projection code)``: the projected Hessian blocks (N/m) added into ``values`` (``grad``
     untouched); returns 0.0."""
+    return add_projected_with(evaluate_snh_hessian, args, x, values)
+
+
+def evaluate_with(kernel, args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+    """A fused tet solid's ``remote_evaluate`` through its fused ``kernel`` (:func:`snh_energy_gradient_hessian` or
+    another law's of the same arguments) on ``args = (tets, dFdx, vol, upper, mu, lam)``: energy in J."""
+    tets, dFdx, vol, upper, mu, lam = args
+    if tets.shape[0] == 0:
+        return 0.0
+    return float(kernel(x, tets, dFdx, vol, upper, mu, lam, grad, values))
+
+
+def add_projected_with(kernel, args: tuple, x: np.ndarray, values: np.ndarray) -> float:
+    """A fused tet solid's ``remote_add_projected`` through its projected-block ``kernel``
+    (:func:`~sim_core.energies.neohookean.kernel.evaluate_snh_hessian` or another law's of the same arguments) on
+    ``args = (tets, dFdx, vol, slots, mu, lam, projection code)``: the blocks added into ``values``; returns 0.0."""
     tets, dFdx, vol, slots, mu, lam, code = args
     if tets.shape[0] == 0:
         return 0.0
     blocks = np.zeros((tets.shape[0], 12, 12))
-    evaluate_snh_hessian(x, tets, dFdx, vol, mu, lam, code, blocks)
+    kernel(x, tets, dFdx, vol, mu, lam, code, blocks)
     add_blocks(blocks, slots, values)
     return 0.0
 
@@ -191,8 +212,21 @@ class FusedStableNeoHookean(BoundSlotTables):
         ConfigError: the Taichi backend is not initialised (:func:`sim_core.ti_backend.init_backend`).
     """
 
+    energy_kernel = staticmethod(snh_energy)
+    """The energy kernel (a :func:`~sim_core.ti_kernels.launch.summing_kernel` of ``(x, tets, dFdx, vol, mu, lam)``);
+    with the three below, what a fused tet solid of another law replaces
+    (:class:`sim_core.energies.green_strain.fused_kernel.FusedGreenStrainSolid`)."""
+    evaluate_kernel = staticmethod(snh_energy_gradient_hessian)
+    """Energy, forces and exact Hessian into the packed upper slots (:func:`snh_energy_gradient_hessian`)."""
+    projected_kernel = staticmethod(evaluate_snh_hessian)
+    """The projected 12x12 blocks of every tet (:func:`~sim_core.energies.neohookean.kernel.evaluate_snh_hessian`)."""
+    projected_rows_kernel = staticmethod(evaluate_snh_hessian_rows)
+    """... of the listed tets (:func:`~sim_core.energies.neohookean.kernel.evaluate_snh_hessian_rows`)."""
+    remote_module = __name__
+    """The module whose ``remote_evaluate`` and ``remote_add_projected`` a worker runs (:meth:`offload_recipe`)."""
+
     def __init__(self, potential: StableNeoHookean) -> None:
-        require_backend("FusedStableNeoHookean")
+        require_backend(type(self).__name__)
         self.potential = potential
         self._device: dict = {}  # on CUDA: device copies of the constant arrays (buffers.on_device)
         self.vertices = potential.tets
@@ -226,15 +260,15 @@ class FusedStableNeoHookean(BoundSlotTables):
             return 0.0
         p = self.potential
         d = self._device
-        return float(snh_energy(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
-                                on_device(d, "vol", self._vol), p.mu, p.lam))
+        return float(self.energy_kernel(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
+                                        on_device(d, "vol", self._vol), p.mu, p.lam))
 
     def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
         """:meth:`energy` split by the copy of each tet's first vertex, J ``(copy_count,)`` (the same kernel, one
         sum cell a tet: :func:`~sim_core.ti_kernels.copy_vectors.copy_energies`)."""
         p = self.potential
         d = self._device
-        return copy_energies(snh_energy, element_copies(d, copy_of_vertex, self._tets[:, 0]), copy_count, d, x,
+        return copy_energies(self.energy_kernel, element_copies(d, copy_of_vertex, self._tets[:, 0]), copy_count, d, x,
                              on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
                              on_device(d, "vol", self._vol), p.mu, p.lam)
 
@@ -247,9 +281,9 @@ class FusedStableNeoHookean(BoundSlotTables):
             return 0.0
         p = self.potential
         d = self._device
-        return float(snh_energy_gradient_hessian(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
-                                                 on_device(d, "vol", self._vol), on_device(d, "upper", self._upper),
-                                                 p.mu, p.lam, grad, values))
+        return float(self.evaluate_kernel(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
+                                          on_device(d, "vol", self._vol), on_device(d, "upper", self._upper),
+                                          p.mu, p.lam, grad, values))
 
     @property
     def element_count(self) -> int:
@@ -263,7 +297,7 @@ class FusedStableNeoHookean(BoundSlotTables):
         object whenever they change, so the worker is reconfigured). :meth:`bind` must have been called."""
         p = self.potential
         args = (self._tets, self._dFdx, self._vol, self._upper, float(p.mu), float(p.lam))
-        self._recipe = part_recipe(self._recipe, f"{__name__}:remote_evaluate", args)
+        self._recipe = part_recipe(self._recipe, f"{self.remote_module}:remote_evaluate", args)
         return self._recipe
 
     def offload_projected_recipe(self, projection: str) -> tuple[str, tuple]:
@@ -276,7 +310,7 @@ class FusedStableNeoHookean(BoundSlotTables):
         """
         p = self.potential
         args = (self._tets, self._dFdx, self._vol, self._slots, float(p.mu), float(p.lam), projection_code(projection))
-        self._projected_recipe = part_recipe(self._projected_recipe, f"{__name__}:remote_add_projected", args)
+        self._projected_recipe = part_recipe(self._projected_recipe, f"{self.remote_module}:remote_add_projected", args)
         return self._projected_recipe
 
     projects_subsets = True
@@ -302,7 +336,7 @@ class FusedStableNeoHookean(BoundSlotTables):
             return
         p = self.potential
         blocks = self._block_buffer()
-        evaluate_snh_hessian(x, self._tets, self._dFdx, self._vol, p.mu, p.lam, code, blocks)
+        self.projected_kernel(x, self._tets, self._dFdx, self._vol, p.mu, p.lam, code, blocks)
         if vertices is None:
             add_blocks(blocks, self._slots, values)
         else:  # the tets touching a marked vertex
@@ -337,8 +371,8 @@ class FusedStableNeoHookean(BoundSlotTables):
         d = self._device
         blocks = on_device(d, "blocks", self._block_buffer(), scratch=True)
         rows_dev = rows_on_device(d, "rows", rows)
-        evaluate_snh_hessian_rows(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
-                                  on_device(d, "vol", self._vol), p.mu, p.lam, code, rows_dev, rows.size, blocks)
+        self.projected_rows_kernel(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
+                                   on_device(d, "vol", self._vol), p.mu, p.lam, code, rows_dev, rows.size, blocks)
         add_upper_block_rows(blocks, on_device(d, "upper", self._upper), rows_dev, rows.size, values)
 
     def _block_buffer(self) -> np.ndarray:

@@ -130,27 +130,16 @@ def evaluate_snh_gradient(
 
 
 @ti.func
-def _snh_projected_block(x: ti.template(), tets: ti.template(), dFdx: ti.template(), vol: ti.template(), mu: ti.f64,
-                         lam: ti.f64, code: ti.i32, t: ti.i32, blocks: ti.template()):
-    """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) of tet ``t`` from the analytic eigensystem."""
-    alpha = 1.0 + 0.75 * mu / lam
-    F = _tet_deformation_gradient(x, tets, dFdx, t)
-    U, sigma, V = _rotation_variant_svd(F)
-    I_C = sigma.dot(sigma)
-    J = sigma[0] * sigma[1] * sigma[2]
-    mu_t = mu * (1.0 - 1.0 / (I_C + 1.0))
-    stretch = lam * (J - alpha)
-    dJ = ti.Vector([sigma[1] * sigma[2], sigma[2] * sigma[0], sigma[0] * sigma[1]])
-    S = (2.0 * mu / (I_C + 1.0) ** 2) * sigma.outer_product(sigma) + lam * dJ.outer_product(dJ)
-    for i in ti.static(range(3)):
-        S[i, i] += mu_t
-    # pairs (i, j) of the twist/flip modes; the third index c: (1, 2) -> 0, (2, 0) -> 1, (0, 1) -> 2
-    S[1, 2] += stretch * sigma[0]
-    S[2, 1] += stretch * sigma[0]
-    S[2, 0] += stretch * sigma[1]
-    S[0, 2] += stretch * sigma[1]
-    S[0, 1] += stretch * sigma[2]
-    S[1, 0] += stretch * sigma[2]
+def isotropic_projected_block(U, sigma, V, S: ti.template(), twist, flip, dFdx: ti.template(), vol: ti.template(),
+                              code: ti.i32, t: ti.i32, blocks: ti.template()):
+    """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) of tet ``t`` from the analytic eigensystem of an
+    isotropic energy's ``d2psi/dF2`` (Smith, de Goes, Kim 2019, "Analytic Eigensystems for Isotropic Distortion
+    Energies", ACM TOG 38(1); Smith et al. 2018, sec. 4.2): three scaling modes ``U diag(z_m) V^T`` from the
+    eigenvectors ``z_m`` of the 3x3 ``S = d2psi/dsigma2`` (diagonalised here, in place), and per pair ``(i, j)``
+    (third index ``k``) a twist ``U (e_i e_j^T - e_j e_i^T) V^T / sqrt 2`` of eigenvalue ``twist[k]`` and a flip
+    ``U (e_i e_j^T + e_j e_i^T) V^T / sqrt 2`` of eigenvalue ``flip[k]``; ``f`` the projection ``code``
+    (:func:`~sim_core.ti_kernels.linalg.filter_eigenvalue`), ``y_m = (dvecF/dx)^T q_m``. ``U, sigma, V``: the
+    rotation-variant SVD of ``F`` (:func:`_rotation_variant_svd`)."""
     Z = ti.Matrix.zero(ti.f64, 3, 3)
     jacobi_eigh(S, Z)
     # h[a, :] = V^T g_a with g_a = dFdx[t, a]
@@ -172,8 +161,8 @@ def _snh_projected_block(x: ti.template(), tets: ti.template(), dFdx: ti.templat
     for k in ti.static(range(3)):
         i = ti.static((1, 2, 0)[k])
         j = ti.static((2, 0, 1)[k])
-        w[3 + k] = filter_eigenvalue(mu_t + stretch * sigma[k], code)
-        w[6 + k] = filter_eigenvalue(mu_t - stretch * sigma[k], code)
+        w[3 + k] = filter_eigenvalue(twist[k], code)
+        w[6 + k] = filter_eigenvalue(flip[k], code)
         for a in ti.static(range(4)):
             for c in ti.static(range(3)):
                 p = U[c, i] * h[a, j]
@@ -188,6 +177,35 @@ def _snh_projected_block(x: ti.template(), tets: ti.template(), dFdx: ti.templat
             acc *= vol[t]
             blocks[t, r, s] = acc
             blocks[t, s, r] = acc
+
+
+@ti.func
+def _snh_projected_block(x: ti.template(), tets: ti.template(), dFdx: ti.template(), vol: ti.template(), mu: ti.f64,
+                         lam: ti.f64, code: ti.i32, t: ti.i32, blocks: ti.template()):
+    """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) of tet ``t`` from the analytic eigensystem
+    (:func:`isotropic_projected_block`; twist ``mu_t + lam (J - alpha) sigma_k``, flip ``mu_t - lam (J - alpha)
+    sigma_k``, Smith et al. 2018, eqs. 27-28)."""
+    alpha = 1.0 + 0.75 * mu / lam
+    F = _tet_deformation_gradient(x, tets, dFdx, t)
+    U, sigma, V = _rotation_variant_svd(F)
+    I_C = sigma.dot(sigma)
+    J = sigma[0] * sigma[1] * sigma[2]
+    mu_t = mu * (1.0 - 1.0 / (I_C + 1.0))
+    stretch = lam * (J - alpha)
+    dJ = ti.Vector([sigma[1] * sigma[2], sigma[2] * sigma[0], sigma[0] * sigma[1]])
+    S = (2.0 * mu / (I_C + 1.0) ** 2) * sigma.outer_product(sigma) + lam * dJ.outer_product(dJ)
+    for i in ti.static(range(3)):
+        S[i, i] += mu_t
+    # pairs (i, j) of the twist/flip modes; the third index c: (1, 2) -> 0, (2, 0) -> 1, (0, 1) -> 2
+    S[1, 2] += stretch * sigma[0]
+    S[2, 1] += stretch * sigma[0]
+    S[2, 0] += stretch * sigma[1]
+    S[0, 2] += stretch * sigma[1]
+    S[0, 1] += stretch * sigma[2]
+    S[1, 0] += stretch * sigma[2]
+    twist = ti.Vector([mu_t + stretch * sigma[0], mu_t + stretch * sigma[1], mu_t + stretch * sigma[2]])
+    flip = ti.Vector([mu_t - stretch * sigma[0], mu_t - stretch * sigma[1], mu_t - stretch * sigma[2]])
+    isotropic_projected_block(U, sigma, V, S, twist, flip, dFdx, vol, code, t, blocks)
 
 
 @fast_kernel
@@ -214,23 +232,25 @@ def evaluate_snh_hessian_rows(
         _snh_projected_block(x, tets, dFdx, vol, mu, lam, code, rows[r], blocks)
 
 
-class TiStableNeoHookean(StableNeoHookean):
-    """:class:`StableNeoHookean` whose energy, gradient and Hessian run as Taichi kernels.
-
-    Construction, validation, parameters and :meth:`parameter_gradient` are the NumPy class's
-    (the adjoint path is unchanged); the rest-shape arrays are uploaded to the device once.
-
-    Args:
-        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`StableNeoHookean`.
+class TetSolidKernels:
+    """Mixin of a tet solid's Taichi twin (before its NumPy class in the bases): energy, gradient and Hessian blocks
+    from the kernels named by :attr:`energy_kernel`, :attr:`gradient_kernel` and :attr:`hessian_kernel` (each
+    ``(x, tets, dFdx, vol, mu, lam, [code,] out)``, the NumPy class's ``mu``, ``lam``); construction, validation,
+    parameters and ``parameter_gradient`` are the NumPy class's, whose rest-shape arrays (``tets``, ``tet_dFdx``,
+    ``tet_rest_volume``) are uploaded to the device once.
 
     Raises:
-        ConfigError: as :class:`StableNeoHookean`, or the Taichi backend is not initialised
+        ConfigError: as the NumPy class, or the Taichi backend is not initialised
             (:func:`sim_core.ti_backend.init_backend`).
-        MeshError: as :class:`StableNeoHookean`.
+        MeshError: as the NumPy class.
     """
 
+    energy_kernel = staticmethod(evaluate_snh_energy)
+    gradient_kernel = staticmethod(evaluate_snh_gradient)
+    hessian_kernel = staticmethod(evaluate_snh_hessian)
+
     def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
-        require_backend("TiStableNeoHookean")
+        require_backend(type(self).__name__)
         super().__init__(tets, x_rest, youngs_modulus, poisson_ratio)
         self._tets_dev = upload_constant(self.tets, ti.i32)
         self._dFdx_dev = upload_constant(self.tet_dFdx, ti.f64)
@@ -246,7 +266,7 @@ class TiStableNeoHookean(StableNeoHookean):
         if k == 0:
             return 0.0
         out = self._tet_energy.ensure((k,))
-        evaluate_snh_energy(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam, out)
+        self.energy_kernel(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam, out)
         return float(np.sum(out.to_numpy()))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
@@ -255,11 +275,11 @@ class TiStableNeoHookean(StableNeoHookean):
         if self.tets.shape[0] == 0:
             return np.zeros_like(x)
         g = self._grad.ensure(x.shape)
-        evaluate_snh_gradient(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam, g)
+        self.gradient_kernel(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam, g)
         return g.to_numpy()
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
-        """Per-tet 12x12 Hessian blocks in N/m (``projection`` as :meth:`StableNeoHookean.hessian`).
+        """Per-tet 12x12 Hessian blocks in N/m (``projection`` as the NumPy class's ``hessian``).
 
         Raises:
             ValueError: unknown projection.
@@ -269,6 +289,20 @@ class TiStableNeoHookean(StableNeoHookean):
         if k == 0:
             return HessianBlocks(self.tets, np.zeros((0, 12, 12)))
         out = self._blocks.ensure((k, 12, 12))
-        evaluate_snh_hessian(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam,
-                             code, out)
+        self.hessian_kernel(self._x.upload(x), self._tets_dev, self._dFdx_dev, self._vol_dev, self.mu, self.lam,
+                            code, out)
         return HessianBlocks(self.tets, out.to_numpy())
+
+
+class TiStableNeoHookean(TetSolidKernels, StableNeoHookean):
+    """:class:`StableNeoHookean` whose energy, gradient and Hessian run as Taichi kernels (:class:`TetSolidKernels`:
+    :func:`evaluate_snh_energy`, :func:`evaluate_snh_gradient`, :func:`evaluate_snh_hessian`).
+
+    Args:
+        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`StableNeoHookean`.
+
+    Raises:
+        ConfigError: as :class:`StableNeoHookean`, or the Taichi backend is not initialised
+            (:func:`sim_core.ti_backend.init_backend`).
+        MeshError: as :class:`StableNeoHookean`.
+    """

@@ -126,6 +126,7 @@ TAICHI_CAPABILITIES = {
     CopyEnergies: {"sim_core.energies.contact.kernel.TiEdgeEdgeContact",
                    "sim_core.energies.contact.kernel.TiVertexTriangleContact",
                    "sim_core.energies.friction.kernel.TiLaggedFriction",
+                   "sim_core.energies.green_strain.fused_kernel.FusedGreenStrainSolid",
                    "sim_core.energies.hinge_bending.fused_kernel.FusedAnisotropicBending",
                    "sim_core.energies.kirchhoff_bending.fused_kernel.FusedKirchhoffBending",
                    "sim_core.energies.membrane.fused_spring_kernel.FusedSpringMembrane",
