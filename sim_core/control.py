@@ -20,10 +20,7 @@ class Control:
             at their targets), e.g. the same step of a replay at nearby parameters. The step
             converges to the same tolerance from any start, and takes at least one Newton
             correction from the guess (the result is never the guess itself); a start close to the
-            solution saves iterations. A row of NaN (the whole row) leaves that vertex at the step's
-            initial position: a guess for some bodies only (``sysid`` warms a replay's pad and gel from
-            another replay, never the card, whose resting state under static friction would keep the
-            other replay's positions). None: start from the step's initial positions.
+            solution saves iterations. None: start from the step's initial positions.
     """
 
     effector_pose_target: dict[str, np.ndarray] = field(default_factory=dict)

@@ -201,13 +201,9 @@ class NewtonSolver:
         guess = control.position_guess
         if guess is not None:
             guess = np.asarray(guess, dtype=float)
-            unset = np.isnan(guess).all(axis=-1) if guess.shape == state_in.x.shape else None
-            if unset is None or not np.all(np.isfinite(guess[~unset])):
-                raise ConfigError(f"control position_guess must be finite positions of shape {state_in.x.shape} "
-                                  f"(a whole row NaN: that vertex starts at x^n), got shape {guess.shape}"
-                                  + ("" if unset is None else " with NaN/inf"))
-            if unset.any():  # a partial guess: those vertices start where the step starts
-                guess = np.where(unset[:, None], state_in.x, guess)
+            if guess.shape != state_in.x.shape or not np.all(np.isfinite(guess)):
+                raise ConfigError(f"control position_guess must be finite positions of shape {state_in.x.shape}, "
+                                  f"got shape {guess.shape}" + ("" if guess.shape != state_in.x.shape else " with NaN/inf"))
         t0 = time.perf_counter()
         sleeping = self.config.sleeping and guess is None and self.step_hook is None
         woken = sorted(set(self._woken_by_reset) | set([] if sleeping else self._sleep.wake_all()))

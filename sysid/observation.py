@@ -154,8 +154,7 @@ class ObservationModel:
         commands: ``(K + 1, 7)`` recorded commanded poses (``pose_cmd``) at the step times, or None.
         warm_start: None, or vertex positions ``(K + 1, n, 3)`` in m of a replay at nearby
             parameters (``SimTrace.positions``): every replay then starts the Newton solve of step
-            k of the effector-driven solids (pad, gel) from row k (``Control.position_guess``, :meth:`warm_guess`)
-            instead of from step k - 1's solution; the other bodies (the card) start from step k - 1's. Each
+            k from row k (``Control.position_guess``) instead of from step k - 1's solution. Each
             step still converges to the solver's tolerance; a start within a few noise units of the
             solution takes about half the Newton iterations. Forked replay workers inherit it.
             Replays whose result must not depend on another one (the nominal) are run with it None.
@@ -208,7 +207,6 @@ class ObservationModel:
         self._sim = None
         self._sensor_mount: np.ndarray | None = None
         self.warm_start: np.ndarray | None = None
-        self._warmed: np.ndarray | None = None
         self.batch_sizing = None
         self.normal_offset = 0.0
         self.nominal_normal_offset = 0.0
@@ -506,7 +504,7 @@ class ObservationModel:
         """
         if not math.isinf(self.drive_stiffness):
             raise CalibrationError("a replay through a series drive has no kinematic controls (no tangents)")
-        guess = self.warm_guess(guess)
+        guess = self._checked_guess(guess)
         return [self.control(k, guess) for k in range(1, self.step_count + 1)]
 
     def control(self, k: int, guess: np.ndarray | None = None, normal_offset: float | None = None) -> Control:
@@ -534,44 +532,12 @@ class ObservationModel:
         mount = self._sensor_mount
         return quat_to_matrix(pose[3:7]) @ quat_to_matrix(mount[3:7]) @ np.array([0.0, 0.0, 1.0])
 
-    def warm_guess(self, guess: np.ndarray | None = None) -> np.ndarray | None:
-        """The Newton starts of a replay's steps ``(K + 1, n, 3)`` m from ``guess`` (default :attr:`warm_start`):
-        its rows of the effector-driven solids (:meth:`warmed_vertices`: the pad, the gel), NaN elsewhere, so
-        that every other body (the card) starts each step from this replay's own last state
-        (``Control.position_guess``). A card resting on the table under static friction stays at any position
-        within the Newton tolerance of its last one, so a start from another replay's card kept that replay's
-        card: nominal_s101 replayed at the scene's values warm from a +30 % replay moved its sheet points by
-        0.117 whitened RMS (0.25 mm at most) from the cold replay, 0.0015 with the card started cold
-        (docs/benchmarks_log.md, session 54, s54-49time). None without a guess.
-
-        Raises:
-            CalibrationError: ``guess`` is not ``K + 1`` position arrays.
-        """
+    def _checked_guess(self, guess: np.ndarray | None) -> np.ndarray | None:
         guess = self.warm_start if guess is None else guess
-        if guess is None:
-            return None
-        if np.ndim(guess) != 3 or len(guess) != self.step_count + 1:
+        if guess is not None and (np.ndim(guess) != 3 or len(guess) != self.step_count + 1):
             raise CalibrationError(f"warm start: expected {self.step_count + 1} position arrays (n, 3), "
                                    f"got shape {np.shape(guess)}")
-        warmed = self.warmed_vertices()
-        if len(warmed) == np.shape(guess)[1]:
-            return guess
-        out = np.full(np.shape(guess), np.nan)
-        out[:, warmed] = np.asarray(guess, dtype=float)[:, warmed]
-        return out
-
-    def warmed_vertices(self) -> np.ndarray:
-        """Indices of the vertices a warm start sets (:meth:`warm_guess`): every body one of whose vertices an
-        effector drives (a tactile pad's gel, a gripper's fingers), sorted; the free bodies are not."""
-        if self._warmed is None:
-            model = self.simulation().model
-            driven = set()
-            for eff in model.effectors.values():
-                driven.update(int(v) for v in np.asarray(eff.vertices).reshape(-1))
-            bodies = [np.asarray(b.vertices, dtype=np.int64) for b in model.bodies.values()
-                      if driven.intersection(int(v) for v in np.asarray(b.vertices).reshape(-1))]
-            self._warmed = np.unique(np.concatenate([*bodies, np.asarray(sorted(driven), dtype=np.int64)]))
-        return self._warmed
+        return guess
 
     def simulate(self, params: Mapping[str, float],
                  on_step: Callable[[int, int], None] | None = None, keep_positions: bool = False,
@@ -602,7 +568,7 @@ class ObservationModel:
                 a resume with ``keep_positions``/``keep_states``.
             SimulationDivergedError: the solver failed (names the step).
         """
-        guess = self.warm_guess()
+        guess = self._checked_guess(None)
         sim = self.prepare(params)
         t_start = time.perf_counter()
         K = self.step_count

@@ -120,7 +120,7 @@ def drive_sensitivities(model, sim, params: Sequence[str]
                         ) -> tuple[Trajectory, np.ndarray, np.ndarray, np.ndarray]:
     """Replay ``model``'s recording through its series drive and propagate ``dX/dp`` in the same pass.
 
-    Each step is solved by :meth:`ReplayDrive.step` (its Newton solves start from ``model.warm_guess()`` when
+    Each step is solved by :meth:`ReplayDrive.step` (its Newton solves start from ``model.warm_start`` when
     set); its tangents are solved with the factorisation of the step's accepted evaluation
     (``NewtonSolver.exact_factorization``) and carried through the spring's compression
     (:meth:`sim_core.sensitivity.TangentPropagation.advance` with a :class:`~sim_core.sensitivity.DriveStep`).
@@ -150,7 +150,7 @@ def drive_sensitivities(model, sim, params: Sequence[str]
     vertices = np.asarray(sim.model.effectors[drive.spring.effector].vertices, dtype=np.int64)
     rate = drive.spring.damping / sim.dt
     dX, dF, dQ = np.zeros((K + 1, n, 3, P)), np.zeros((K + 1, n, 3, P)), np.zeros((K + 1, 3, P))
-    guess = model.warm_guess()
+    guess = model.warm_start
     states, controls, fallback = [sim.state.copy()], [], None
     for k in range(1, K + 1):
         control = model.control(k, guess)
