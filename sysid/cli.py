@@ -68,9 +68,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stop-trial-scaled", action="store_true",
                    help="measure --stop-trial-sigma's trial step in the scaled 1-sigma only (default: in the larger of "
                         "it and the robust 1-sigma of --robust)")
-    p.add_argument("--cold-start", action="store_true",
-                   help="start every replay's Newton solves from the previous step (default: from the best replay "
-                        "so far, which converges to the same tolerance in fewer iterations)")
+    p.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=False,
+                   help="start every replay's Newton solves from the best replay so far (default: off, each step from "
+                        "the replay's own last step, so that a replay is a function of its parameters only; a warm "
+                        "replay keeps the warming replay's card where it rests under static friction)")
+    p.add_argument("--cold-start", dest="warm_start", action="store_false",
+                   help="the default (--no-warm-start), kept for older command lines")
     p.add_argument("--dt", type=float, default=0.01, help="simulation step in s (default: %(default)s)")
     p.add_argument("--t-max", type=float, help="fit only the first T seconds of the recording")
     p.add_argument("--recording-map", metavar="FILE",
@@ -97,7 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replay each finite-difference Jacobian's columns and each global population together as one "
                         "batch of scene copies in this process (sim_core.batch lockstep; on --arch cuda one batched "
                         "CG; sysid.replay_batch; overrides --workers). The batch's replays start cold: with "
-                        "--cold-start the fit is the serial one (to 3e-9 sigma on the bundled bag)")
+                        "cold replays (the default) the fit is the serial one (to 3e-9 sigma on the bundled bag)")
     p.add_argument("--batch-size", type=batch_size_arg, metavar="N|auto",
                    help="with --batched: the most copies stepped together; auto: the most that fit the free memory")
     p.add_argument("--robust", choices=(*ROBUST_METHODS, "none"), default=DEFAULT_ROBUST_METHOD,
@@ -274,7 +277,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       stop_sigma=args.stop_sigma or None, stop_trial_sigma=args.stop_trial_sigma or None,
                       stop_rms=args.stop_rms or None, stop_robust_sigma=args.stop_robust_sigma or None,
                       stop_trial_robust=not args.stop_trial_scaled,
-                      warm_start=not args.cold_start,
+                      warm_start=args.warm_start,
                       sensor_calibration=not args.no_sensor_calibration, profile_gains=not args.fixed_gains,
                       calibration_params=CALIBRATION_PARAMETERS if args.calibrate else (),
                       calibration_max_time=args.calibration_time, calibration_max_replays=args.calibration_replays,

@@ -164,6 +164,10 @@ class FitProblem:
         batched, batch_size: :meth:`evaluate_many` steps its replays together in this process as copies of
             the scene, at most ``batch_size`` at a time (an integer, ``"auto"`` or None: all;
             :func:`sysid.replay_batch.simulate_batch`, which says what runs serially instead); before ``workers``.
+        extra: specs of parameters held at their nominal (``u = 0``; a fit's nuisance parameters) whose whitened
+            Jacobian columns every joint replay also computes from its tangents and keeps beside its Jacobian
+            (:meth:`extra_jacobian`): where the replays are cold, the fit's optimum then needs no replay of its own
+            for them (:func:`_nuisance_jacobian`).
 
     Attributes:
         last_positions: vertex positions ``(K + 1, n, 3)`` of the last serial replay (None when
@@ -177,8 +181,11 @@ class FitProblem:
     def __init__(self, model: ObservationModel, specs: Sequence[ParameterSpec], workers: int = 1,
                  deadline: float | None = None, on_eval: Callable[[Evaluation], None] | None = None,
                  joint: Callable[["FitProblem", np.ndarray], tuple] | None = None, warm_start: bool = False,
-                 max_replays: int | None = None, batched: bool = False, batch_size: int | str | None = None) -> None:
+                 max_replays: int | None = None, batched: bool = False, batch_size: int | str | None = None,
+                 extra: Sequence[ParameterSpec] = ()) -> None:
         self.model = model
+        self.extra_specs = tuple(extra)
+        self._extra: dict[bytes, np.ndarray] = {}
         self.batched, self.batch_size = bool(batched), batch_size
         self.max_replays = max_replays
         self.warm_start = bool(warm_start)
@@ -305,6 +312,18 @@ class FitProblem:
         for k in list(self._jacobians):
             if k not in recent and k != best:
                 del self._jacobians[k]
+        for k in list(self._extra):
+            if k not in self._jacobians:
+                del self._extra[k]
+
+    def keep_extra_jacobian(self, u: np.ndarray, J: np.ndarray) -> None:
+        """Keep the columns ``J`` ``(m, len(extra))`` of the :attr:`extra_specs` at ``u``, as long as the Jacobian
+        at ``u`` is kept (:meth:`keep_jacobian`, which a joint replay's caller calls next)."""
+        self._extra[np.asarray(u, dtype=float).tobytes()] = J
+
+    def extra_jacobian(self, u: np.ndarray) -> np.ndarray | None:
+        """The :attr:`extra_specs`' columns a joint replay computed at ``u`` (kept with its Jacobian), or None."""
+        return self._extra.get(np.asarray(u, dtype=float).tobytes())
 
     def cached_jacobian(self, u: np.ndarray) -> np.ndarray | None:
         """The Jacobian a joint replay computed at ``u`` (one of the last few, or the best point's), or None."""
@@ -602,8 +621,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         nuisance: parameters the fit holds fixed whose values are uncertain, name -> prior 1-sigma
             (relative for a positive scale parameter, in the parameter's units for a Poisson ratio or
             a zero-start one; :func:`nuisance_prior_u`): their propagated covariance
-            (:func:`sysid.covariance.nuisance_covariance`, one more replay with tangents at the
-            optimum) is added to the robust one (method ``<robust>+nuisance``). None or empty: off.
+            (:func:`sysid.covariance.nuisance_covariance`; their columns from the tangents of every joint replay of
+            a cold fit, else one more replay with tangents at the optimum) is added to the robust one (method
+            ``<robust>+nuisance``). None or empty: off.
         stop_trial_robust: measure the ``stop_trial_sigma`` rule's trial step in the larger of the
             scaled and the robust 1-sigma (``robust``): a rejected trial step within the uncertainty
             the fit reports ends the fit. On nominal_s101 (``thinshell sysid`` defaults, 2026-11-27)
@@ -664,8 +684,12 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         raise ConfigError(f"unknown robust covariance method {robust!r} (choose from {', '.join(ROBUST_METHODS)})")
     if max_replays is not None and max_replays < 2:
         joint = None  # no replay left for a step or a difference column: the start's tangents would go unused
+    # the nuisance columns from every cold joint replay's tangents (no replay of the optimum again for them)
+    extra = [parameter_spec(n, model.parameter_value(n)) for n in nuisance] if (
+        robust is not None and joint is not None and not warm_start) else []
     problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint,
-                         warm_start=warm_start, max_replays=max_replays, batched=batched, batch_size=batch_size)
+                         warm_start=warm_start, max_replays=max_replays, batched=batched, batch_size=batch_size,
+                         extra=extra)
     saved_warm_start, model.warm_start = getattr(model, "warm_start", None), None
     saved_scale = getattr(model, "sigma_scale", None)
     if reweight_channels:
@@ -884,9 +908,13 @@ def nuisance_prior_u(name: str, value: float, prior: float) -> float:
 
 def _nuisance_jacobian(problem: FitProblem, u_best: np.ndarray, nuisance: Mapping[str, float], fd_step: float,
                        notes: list[str]) -> tuple[np.ndarray | None, int]:
-    """Whitened Jacobian ``(m, q)`` of the nuisance parameters at the fitted point (one replay with tangents
-    where the sensitivity provider is available, else finite differences), and the replays it took."""
+    """Whitened Jacobian ``(m, q)`` of the nuisance parameters at the fitted point, and the replays it took: the
+    columns the point's own cold joint replay computed (:attr:`FitProblem.extra_specs`; no replay), else one replay
+    with tangents where the sensitivity provider is available, else finite differences."""
     model = problem.model
+    kept = problem.extra_jacobian(u_best)
+    if kept is not None and not problem.warm_start and [s.name for s in problem.extra_specs] == list(nuisance):
+        return kept, 0  # the optimum's own cold replay computed them: a replay of it again would give the same
     ext = FitProblem(model, list(problem.specs) + [parameter_spec(n, model.parameter_value(n)) for n in nuisance])
     try:
         J = make_jacobian("auto", fd_step)(ext, np.concatenate([np.asarray(u_best, dtype=float),

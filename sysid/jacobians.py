@@ -247,29 +247,38 @@ class SensitivityJacobian:
         names, other = self._split(problem)
         if not names:
             raise ConfigError("no parameter with simulator sensitivities: a plain replay gives the residual")
+        # the columns of the problem's extra parameters (a fit's nuisance parameters at their nominal) in the same
+        # replay, where every one has tangents: the fit then needs no replay of its own for them at its optimum
+        extra = tuple(getattr(problem, "extra_specs", ()))
+        if any(s.name in DIFFERENCE_PARAMETERS for s in extra):
+            extra = ()
         sim = model.prepare(values)
         t = time.perf_counter()
-        traj, dX, dF, dQ = self._rollout(model, sim, names)
+        traj, dX, dF, dQ = self._rollout(model, sim, [*names, *(s.name for s in extra)])
         if problem.warm_start:  # the start of the next replays
             problem.last_positions = np.stack([s.x for s in traj.states])
         trace = model.trace_of(sim, traj.states, time.perf_counter() - t)
         prediction = model.predict(trace)
         r = model.residuals(prediction)
         J = np.full((r.shape[0], len(problem.names)), np.nan)
-        mine = self._whitened(problem, values, sim, traj, dX, dF, dQ)
+        mine = self._whitened(problem, {**values, **{s.name: s.to_value(0.0) for s in extra}}, sim, traj, dX, dF, dQ,
+                              extra)
         if model.gain_profile is not None:  # the gains refitted at every replay: their columns projected out
             mine = model.gain_profile.project(model.predict_raw(trace), mine)
-        J[:, [i for i in range(len(problem.names)) if i not in other]] = mine
+        J[:, [i for i in range(len(problem.names)) if i not in other]] = mine[:, :len(names)]
+        if extra:
+            problem.keep_extra_jacobian(u, mine[:, len(names):])
         return r, J, prediction
 
     def _whitened(self, problem: ReplayProblem, values: Mapping[str, float], sim, traj, dX: np.ndarray,
-                  dF: np.ndarray, dQ: np.ndarray | None = None) -> np.ndarray:
+                  dF: np.ndarray, dQ: np.ndarray | None = None, extra: Sequence[Any] = ()) -> np.ndarray:
         """Whitened residual Jacobian ``(m, p)`` in the search coordinates from the state tangents (``dQ``: those
-        of the sensor's effector position on a series drive, :meth:`_rollout`)."""
+        of the sensor's effector position on a series drive, :meth:`_rollout`); with ``extra`` parameter specs
+        (their tangents after the problem's, their values in ``values``) ``(m, p + len(extra))``."""
         model = problem.model
         obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor, effector_position=dQ)
-        dtheta_du = np.array([abs(values[s.name]) if s.log else s.scale for s in problem.specs
-                              if s.name not in DIFFERENCE_PARAMETERS])
+        specs = [*(s for s in problem.specs if s.name not in DIFFERENCE_PARAMETERS), *extra]
+        dtheta_du = np.array([abs(values[s.name]) if s.log else s.scale for s in specs])
         cal = getattr(model, "sensor_calibration", None)
         blocks = []
         for ch in model.channels:

@@ -14,6 +14,7 @@ from sysid.fit import (
     FiniteDifferenceJacobian,
     FitProblem,
     SensitivityJacobian,
+    _nuisance_jacobian,
     first_region_scale,
     fit,
     gauss_newton_covariance,
@@ -176,6 +177,35 @@ def test_joint_replay_gives_the_plain_residual_and_the_sensitivity_jacobian(pres
         joint.residual(u + 0.01 * (k + 1), phase="local")
     assert len(joint._jacobians) <= FitProblem.JACOBIANS_KEPT + 1
     assert joint.cached_jacobian(joint.best[1]) is not None
+
+
+def test_a_joint_replay_keeps_the_nuisance_columns_of_a_replay_of_their_own(press_bag):
+    """``FitProblem(extra=...)``: the joint replay's tangents carry the held nuisance parameters' columns too, equal
+    to those of a separate replay with tangents of every parameter (what the fit's optimum replayed for them before
+    session 54), and the fit's nuisance Jacobian at that point then takes them without a replay."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    specs = [parameter_spec("gel.youngs_modulus", TRUE_PARAMS["gel.youngs_modulus"])]
+    nuisance = {"friction.sheet_table": 0.3, "gel.poisson_ratio": 0.03}
+    extra = [parameter_spec(n, model.parameter_value(n)) for n in nuisance]
+    provider = SensitivityJacobian()
+    u = np.array([0.3])
+    joint = FitProblem(model, specs, joint=provider.joint, extra=extra)
+    joint.residual(u, phase="local")
+    kept, J_fit = joint.extra_jacobian(u), joint.cached_jacobian(u)
+    assert kept is not None and kept.shape == (model.residual_count, 2) and joint.sim_runs == 1
+    separate = FitProblem(model, specs + extra)
+    J = provider(separate, np.concatenate([u, np.zeros(2)]))
+    assert np.abs(J[:, 1:]).max() > 0.0
+    np.testing.assert_allclose(kept, J[:, 1:], rtol=0, atol=1e-9 * np.abs(J[:, 1:]).max())
+    np.testing.assert_allclose(J_fit, J[:, :1], rtol=0, atol=1e-9 * np.abs(J[:, :1]).max())
+    notes: list[str] = []
+    J_nuisance, runs = _nuisance_jacobian(joint, u, nuisance, 0.01, notes)
+    assert runs == 0 and J_nuisance is kept and not notes
+    # a warm-started fit's optimum is replayed again (its joint replay was warmed from another)
+    joint.warm_start = True
+    assert _nuisance_jacobian(joint, u, nuisance, 0.01, notes)[1] == 1
 
 
 def test_fused_taichi_replay_equals_the_numpy_replay(press_bag):
