@@ -39,6 +39,7 @@ from sysid.observation import ObservationModel
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
 from sysid.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
+from sysid.wrench_check import check_wrench
 
 
 @dataclass(frozen=True)
@@ -127,6 +128,12 @@ class FitOptions:
             carries the start into the answer (1.7 / 2.4 / 3.1 mm/s on nominal_s101 from starts 0.7 / 1.0 / 1.3 x the
             scene's materials; on this simulator's concealed-arm press-slide from 1.3 x, 14.7 mm/s against the
             recording's 10 and the gel modulus 0.835 x the truth, 0.949 x with it fitted; docs/benchmarks_log.md).
+        wrench_check: judge the recorded wrench against the gel's own marker shear by window
+            (:func:`sysid.wrench_check.check_wrench`) and leave the rows whose force contradicts it (it is then not the
+            force ON the gel, INTERFACES.md) out of the fit and the sensor's gains, named in the report's warnings and
+            fit.json ``diagnostics.wrench_check`` (True, the default; it trips on no press-slide of the reference set
+            and on every lift-and-fold's carried phase, where the reference records its bonds' force with the card's
+            sign; docs/benchmarks_log.md, session 54). False (``thinshell sysid --no-wrench-check``): every row fitted.
         probe_worker: make the calibration's secant probe in a second process beside its start replay, as
             ``thinshell diagnose`` does (:func:`sysid.diagnose.probe_worker.calibration_probe`: the same replays
             and values, one replay less wall time on two cores; where it applies); False (``thinshell sysid
@@ -172,6 +179,7 @@ class FitOptions:
     hold_unidentified: bool = True
     first_step: float | None = FIRST_STEP
     fit_eps_v: bool = True
+    wrench_check: bool = True
     probe_worker: bool = True
 
     def __post_init__(self) -> None:
@@ -304,6 +312,9 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                                  channels=None if options.channels is None else list(options.channels),
                                  simulation=simulation or None, arch=options.arch)
     notes = tuple(str(w.message) for w in caught)
+    wrench = check_wrench(model.evidence) if options.wrench_check and "wrench" in model.channels else None
+    if wrench is not None and wrench.tripped:  # before the probe's fork: its replays are judged the same way
+        model.row_mask = {"wrench": ~wrench.against}
     calibrated = tuple(p for p in options.calibration_params if p not in options.params)
     drive = fit_drive(model) if options.drive and model.sensor is not None else None
     if drive is not None:
@@ -353,6 +364,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                  stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options),
                  hold_unidentified=options.hold_unidentified, first_step=options.first_step)
     result.warnings[:0] = list(notes)
+    if wrench is not None and wrench.tripped:
+        result.warnings.append(wrench.message(str(bag)))
     if model.gain_profile is not None:  # the gains at the fitted values, as the fit's best replay took them
         found = model.gain_profile.calibration_of(result.prediction_final)
         model.gain_profile = None
@@ -376,6 +389,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         doc["diagnostics"]["drive"] = drive.summary()
     if tack is not None:
         doc["diagnostics"]["tack"] = tack.summary()
+    if wrench is not None:
+        doc["diagnostics"]["wrench_check"] = wrench.summary()
     doc["diagnostics"]["gel_law"] = {"element": (model.scene.get("simulation") or {}).get("gel_element",
                                                                                       SIMULATION_KEYS["gel_element"]),
                                      "requested": options.gel_element or "scene",
