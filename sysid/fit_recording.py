@@ -38,7 +38,7 @@ from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.observation import ObservationModel
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
-from sysid.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
+from sysid.tack import LAYER_ROUNDS, SHEAR_STIFFNESS_SETTING, layer_log_sigma, nominal_tack, refit_layer
 from sysid.wrench_check import check_wrench
 
 
@@ -355,14 +355,27 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     stage = None if sensor is None or not options.fit_eps_v else sensor.secant
     secant = stage.names if stage is not None and stage.accepted else ()
     fitted = [*options.params, *(n for n in secant if n not in options.params)]
-    result = fit(model, fitted, jacobian=jacobian, global_method=options.global_method,
-                 global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
-                 fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
-                 stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
-                 stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
-                 batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
-                 stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options),
-                 hold_unidentified=options.hold_unidentified, first_step=options.first_step)
+    nuisance = nuisance_of(model, options)
+    alternate = tack is not None and layer_on and SHEAR_STIFFNESS_SETTING not in options.params
+    if alternate:  # the layer held in the fit, its uncertainty carried into the materials' robust sigma
+        nuisance[SHEAR_STIFFNESS_SETTING] = layer_log_sigma(tack)
+    fit_args = dict(jacobian=jacobian, global_method=options.global_method,
+                    global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
+                    fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
+                    stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
+                    stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
+                    batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
+                    stop_trial_robust=options.stop_trial_robust, hold_unidentified=options.hold_unidentified,
+                    first_step=options.first_step)
+    result = fit(model, fitted, nuisance=nuisance, **fit_args)
+    fit_replays = [result.sim_runs]
+    for _ in range(LAYER_ROUNDS - 1 if alternate else 0):  # k_t at the fitted materials, then the materials again
+        tack, moved = refit_layer(model, tack, dict(result.values))
+        if not moved:
+            break
+        nuisance[SHEAR_STIFFNESS_SETTING] = layer_log_sigma(tack)
+        result = fit(model, fitted, initial=dict(result.values), nuisance=nuisance, **fit_args)
+        fit_replays.append(result.sim_runs)
     result.warnings[:0] = list(notes)
     if wrench is not None and wrench.tripped:
         result.warnings.append(wrench.message(str(bag)))
@@ -388,7 +401,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     if drive is not None:
         doc["diagnostics"]["drive"] = drive.summary()
     if tack is not None:
-        doc["diagnostics"]["tack"] = tack.summary()
+        doc["diagnostics"]["tack"] = {**tack.summary(), "fit_replays": fit_replays}
     if wrench is not None:
         doc["diagnostics"]["wrench_check"] = wrench.summary()
     doc["diagnostics"]["gel_law"] = {"element": (model.scene.get("simulation") or {}).get("gel_element",
