@@ -106,12 +106,13 @@ class FitOptions:
             docs/benchmarks_log.md, session 51, 49sysdrive.)
         tack: where the recording shows the card carried by the gel (a lift), make the gel's tack part of the
             nominal model, released at the recorded peel, with its compliant shear layer fitted from the carried card
-            where it follows better (:func:`sysid.tack.nominal_tack`); fit.json ``diagnostics.tack`` says what was
-            decided and why. False (the default): no tack, a lift's card stays on the table in every replay
-            (nominal_s109's sheet points at whitened RMS 82 at the engine's values; 32 with normal-only bonds, 7.6
-            with the compliant layer). Not the default: the layer follows the start's materials and, once the card
-            is carried, the fit spends the materials on the sheet points and the wrench (nominal_s109 from +-30 %
-            starts: 5 of 9 engine values inside the robust 2-sigma; :mod:`sysid.tack`, docs/benchmarks_log.md).
+            where it follows better (:func:`sysid.tack.nominal_tack`), then refitted at each fit's materials and the
+            materials fitted again until ``k_t`` settles within its sigma (:func:`sysid.tack.refit_layer`, at most
+            :data:`sysid.tack.LAYER_ROUNDS` fits; ``k_t``'s sigma enters the materials' robust sigma as a nuisance);
+            fit.json ``diagnostics.tack`` says what was decided and why. False (the default): no tack, a lift's card
+            stays on the table in every replay (nominal_s109's sheet points at whitened RMS 82 at the engine's
+            values; 7.6 with the layer). Not the default: not validated from starts 30 % off
+            (docs/benchmarks_log.md, session 54, s54-49lift).
         hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely

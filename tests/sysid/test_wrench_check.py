@@ -87,3 +87,12 @@ def test_left_out_rows_weigh_nothing_in_the_residual_and_the_gains(s109):
     assert unmasked["force_gain"] < 1.0
     model.row_mask = None
     assert masked_rows(model, None) is None
+
+
+def test_thinshell_sysid_checks_the_wrench_by_default():
+    """``thinshell sysid`` runs the check unless ``--no-wrench-check`` (``FitOptions.wrench_check``)."""
+    from sysid.cli import build_parser, fit_options
+    from sysid.fit_recording import FitOptions
+
+    assert FitOptions().wrench_check and fit_options(build_parser().parse_args(["bag"])).wrench_check
+    assert not fit_options(build_parser().parse_args(["bag", "--no-wrench-check"])).wrench_check
