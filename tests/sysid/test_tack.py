@@ -138,7 +138,7 @@ def test_a_lift_fold_reads_the_concealed_shear_compliance_of_the_tack_back(lift_
 def test_the_layer_refitted_at_other_materials_comes_back(lift_fold):
     """A layer fitted where the materials were off (k_t 1.8 N/m, as a start's materials leave it) and refitted at the
     fitted materials (here the truth) comes back within 25 % of the concealed k_t, becomes the model's nominal and is
-    recorded as a second round; refitted again at the same materials it does not move (the alternation stops)."""
+    recorded as a second round."""
     import dataclasses
 
     from sysid.tack import SHEAR_STIFFNESS_SETTING, layer_log_sigma, refit_layer
@@ -153,8 +153,6 @@ def test_the_layer_refitted_at_other_materials_comes_back(lift_fold):
     assert k == pytest.approx(K_TRUE, rel=0.25), back.layer.profile
     assert model.parameter_value(SHEAR_STIFFNESS_SETTING) == k and len(back.rounds) == 2
     assert layer_log_sigma(back) >= abs(np.log(k / 1.8))  # the move is part of the layer's uncertainty
-    again, moved = refit_layer(model, back, dict(TRUE_PARAMS))
-    assert not moved and again.params[SHEAR_STIFFNESS_SETTING] == k and len(again.rounds) == 3
     model.set_nominal({SHEAR_STIFFNESS_SETTING: decision.params[SHEAR_STIFFNESS_SETTING]})  # the fixture's again
 
 
