@@ -28,7 +28,13 @@ the nominal model the tack wherever the recording shows the card carried:
    finite stiffness. With the materials held at the start, the layer's ``k_t`` (N/m per bonded pair, bonds of
    :data:`LAYER_BOND_WEIGHTS` card weights held to the recorded peel) is searched in log on the sheet points
    before the peel (at most :data:`SHEAR_MAX_REPLAYS` replays), and kept where it follows the carried card better
-   than the normal-only bonds.
+   than the normal-only bonds. Its sigma counts one datum per correlation time of the card's residual
+   (:func:`_rows_per_datum`).
+4. after each fit of the materials, ``k_t`` is refitted at the fitted materials (:func:`refit_layer`, within a factor
+   :data:`REFIT_SPAN` of the last value) and the materials fitted again where it moved by more than its sigma, at
+   most :data:`LAYER_ROUNDS` fits (:func:`sysid.fit_recording.fit_recording`); the fit holds ``k_t`` as a nuisance
+   whose sigma (:func:`layer_log_sigma`) enters the materials' robust sigma, and weighs each channel by its gap at
+   its start (the carried card's sheet points, the layer's form error, would otherwise drive the materials).
 
 Every later replay (calibration and fit) takes the tack (:meth:`sysid.observation.ObservationModel.set_nominal`).
 nominal_s109 at the engine's values, sheet points' whitened RMS over the recording: no tack 81.9, normal-only bonds
