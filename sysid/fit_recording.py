@@ -358,11 +358,11 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     fitted = [*options.params, *(n for n in secant if n not in options.params)]
     nuisance = nuisance_of(model, options)
     alternate = tack is not None and layer_on and SHEAR_STIFFNESS_SETTING not in options.params
-    # with the layer, the carried card's sheet points (80 % of the residuals, whitened RMS 7 at the engine's values on
-    # nominal_s109: the layer's form error) would drive the materials (s109 from -30 %: modulus -64 %, friction -50 %
-    # for 1 % of the cost); each channel is weighed by its gap at the fit's start (sysid.fit.fit reweight_channels)
     if alternate:  # the layer held in the fit, its uncertainty carried into the materials' robust sigma
         nuisance[SHEAR_STIFFNESS_SETTING] = layer_log_sigma(tack)
+    # with the layer, the carried card's sheet points (80 % of the residuals, whitened RMS 7 at the engine's values on
+    # nominal_s109: the layer's form error) would drive the materials (s109 from -30 %: modulus -64 %, -23 % weighed);
+    # each channel is weighed by its gap at the fit's start (sysid.fit.fit reweight_channels)
     fit_args = dict(jacobian=jacobian, global_method=options.global_method,
                     global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
                     fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
