@@ -752,7 +752,8 @@ class ObservationModel:
 
         Returns:
             channel -> ``{"rms", "per_axis", "whitened_rms", "unit", "fitted"}``; for the wrench
-            ``rms`` is over the force components (N) and ``torque_rms`` over the torques (N m).
+            ``rms`` is over the force components (N) and ``torque_rms`` over the torques (N m); a channel with a
+            :attr:`row_mask` also ``whitened_rms_kept_rows`` (over the rows the fit used).
         """
         out = {}
         for ch in self._interp:
@@ -764,6 +765,10 @@ class ObservationModel:
                 "whitened_rms": float(np.sqrt(np.mean((axes / self.sigma[ch]) ** 2))),
                 "unit": CHANNEL_UNITS[ch], "fitted": ch in self.channels,
             }
+            keep = None if self.row_mask is None else self.row_mask.get(ch)
+            if keep is not None:  # the rows the fit used (the others contradict the channel's contract)
+                kept = e[np.asarray(keep, dtype=bool)].reshape(-1, e.shape[-1])
+                entry["whitened_rms_kept_rows"] = float(np.sqrt(np.mean((kept / self.sigma[ch]) ** 2)))
             if ch == "wrench":
                 entry["rms"] = float(np.sqrt(np.mean(axes[:, :3] ** 2)))
                 entry["torque_rms"] = float(np.sqrt(np.mean(axes[:, 3:] ** 2)))

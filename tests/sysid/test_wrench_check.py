@@ -64,7 +64,8 @@ def test_left_out_rows_weigh_nothing_in_the_residual_and_the_gains(s109):
     model = ObservationModel(s109, dt=0.01, channels=["markers_xyz", "wrench"])
     check = check_wrench(s109)
     rng = np.random.default_rng(0)
-    pred = {ch: model.data(ch) + rng.normal(size=model.data(ch).shape) * model.sigma[ch] for ch in model.channels}
+    pred = {ch: model.data(ch) + rng.normal(size=model.data(ch).shape) * np.asarray(s109.noise[ch])
+            for ch in ("markers_xyz", "markers_uv", "wrench", "sheet_points")}
     full = model.residuals(pred)
     model.row_mask = {"wrench": ~check.against}
     masked = model.residuals(pred)
@@ -85,8 +86,11 @@ def test_left_out_rows_weigh_nothing_in_the_residual_and_the_gains(s109):
     assert masked_cal.force_gain == pytest.approx(1.1, rel=1e-9) and asked["force_gain"] == pytest.approx(1.1)
     _, unmasked = fit_sensor_gains(data, raw, model.sigma, None, nominal_sensor_calibration(model))
     assert unmasked["force_gain"] < 1.0
+    rms = model.channel_rms(pred)["wrench"]
+    assert rms["whitened_rms_kept_rows"] == pytest.approx(
+        np.sqrt(np.mean(((model.data("wrench") - pred["wrench"])[~check.against] / model.sigma["wrench"]) ** 2)))
     model.row_mask = None
-    assert masked_rows(model, None) is None
+    assert masked_rows(model, None) is None and "whitened_rms_kept_rows" not in model.channel_rms(pred)["wrench"]
 
 
 def test_thinshell_sysid_checks_the_wrench_by_default():
