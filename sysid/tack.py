@@ -43,12 +43,14 @@ session 53). The rigid shear bonds of the coupled law (``adhesion.shear``) read 
 ``thinshell sysid --tack --params ...,candidate.adhesion.shear_stiffness`` fits ``k_t`` jointly with the materials
 (its Jacobian column a forward difference, :data:`sysid.jacobians.DIFFERENCE_PARAMETERS`).
 
-Still opt-in (``thinshell sysid --tack``), measured in session 53: with the layer the calibrated markers and pixels
-of both lifts fall below 3 and s109's bending stiffness from the scene is identified (-3.5 %), but from +-30 %
-starts the materials do not come back (s109 -30 %: modulus -64 %, friction -50 %), and from the scene the friction
-lands at -27 %: ``k_t`` follows the start's materials (1.98 / 2.64 / 3.41 N/m a pair), and the reference records
-the bonds' force with the card's sign, so the calibration asks a force gain of 0.29-0.59 once a physical tack
-carries the card.
+Still opt-in (``thinshell sysid --tack``). Session 53: from +-30 % starts the materials did not come back (s109
+-30 %: modulus -64 %, friction -50 %) and from the scene the friction landed at -27 %, with the force gain on its bound
+(the reference records the bonds' force with the card's sign). Session 54 (docs/benchmarks_log.md, s54-49lift): with
+that phase's wrench rows left out (:mod:`sysid.wrench_check`) the force gain is 1.01-1.14, inside its prior; with the
+channels weighed and ``k_t`` refitted, s109 from the scene has bending -6.4 %, modulus -10.4 %, friction -32 % (not
+identified), all three inside the robust 2-sigma; from -30 % bending -30 %, modulus -23 %, friction -45 %, none
+inside: the data with the layer do not pull the materials back from there, and the refit leaves ``k_t`` in the
+rough profile's pocket of the start's materials (1.98 against 2.64 from the scene).
 """
 
 from __future__ import annotations
