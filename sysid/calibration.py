@@ -311,6 +311,19 @@ def fit_sensor_gains(data: Mapping[str, np.ndarray], prediction: Mapping[str, np
     return SensorCalibration(**fields), asked
 
 
+def masked_rows(model, rows: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray] | None:
+    """``rows`` (channel -> bool rows to fit on, None: all) less the rows ``model.row_mask`` leaves out (rows that
+    contradict their channel's contract: :mod:`sysid.wrench_check`)."""
+    mask = model.row_mask or {}
+    if not mask:
+        return None if rows is None else dict(rows)
+    out = {ch: np.asarray(r, dtype=bool) for ch, r in (rows or {}).items()}
+    for ch, keep in mask.items():
+        keep = np.asarray(keep, dtype=bool)
+        out[ch] = keep if ch not in out else out[ch] & keep
+    return out
+
+
 # ====================================================================================== calibration
 CALIBRATION_PARAMETERS = ("gel.youngs_modulus", "gel.poisson_ratio", "friction.gel_sheet",
                           "sheet.bending_stiffness", "sensor.normal_offset")
@@ -630,6 +643,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     model.sensor_calibration = None
     model.reset_nominal()
     prior = load_gain_prior(model.sensor) if prior is None else prior
+    rows = masked_rows(model, rows)
     drive_fit = fit_drive(model) if drive else None
     model.set_drive_stiffness(drive_fit.replay_stiffness if drive_fit is not None else math.inf,
                               drive_fit.replay_damping if drive_fit is not None else 0.0)

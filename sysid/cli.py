@@ -136,6 +136,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "kept where it follows the recorded card better than no tack, with a compliant shear layer "
                         "whose stiffness is fitted from the carried card where it follows better still (sysid.tack; "
                         "fit.json diagnostics.tack). Default: off (docs/benchmarks_log.md, sessions 52-53)")
+    p.add_argument("--wrench-check", action=argparse.BooleanOptionalAction, default=True,
+                   help="judge the recorded wrench against the gel's own marker shear by 0.1 s window and leave the "
+                        "rows where the force opposes it (no force ON the gel does; INTERFACES.md) out of the fit and "
+                        "the sensor's gains, named in the report (sysid.wrench_check; fit.json "
+                        "diagnostics.wrench_check). Default: on; --no-wrench-check: every row fitted")
     p.add_argument("--first-step", type=float, default=FIRST_STEP,
                    help="width of the fit's first trust region in every parameter's search coordinate (log units for "
                         "a positive parameter: 0.5 is a factor 1.65; default: %(default)s; 0: least_squares' own, a "
@@ -284,7 +289,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,
                       robust=None if args.robust == "none" else args.robust, drive=args.drive,
                       tack=args.tack, hold_unidentified=args.hold_unidentified,
-                      first_step=args.first_step or None, fit_eps_v=args.fit_eps_v,
+                      first_step=args.first_step or None, fit_eps_v=args.fit_eps_v, wrench_check=args.wrench_check,
                       probe_worker=not args.one_process)
 
 

@@ -38,7 +38,8 @@ from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.observation import ObservationModel
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
-from sysid.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
+from sysid.tack import LAYER_ROUNDS, SHEAR_STIFFNESS_SETTING, layer_log_sigma, nominal_tack, refit_layer
+from sysid.wrench_check import check_wrench
 
 
 @dataclass(frozen=True)
@@ -110,12 +111,13 @@ class FitOptions:
             docs/benchmarks_log.md, session 51, 49sysdrive.)
         tack: where the recording shows the card carried by the gel (a lift), make the gel's tack part of the
             nominal model, released at the recorded peel, with its compliant shear layer fitted from the carried card
-            where it follows better (:func:`sysid.tack.nominal_tack`); fit.json ``diagnostics.tack`` says what was
-            decided and why. False (the default): no tack, a lift's card stays on the table in every replay
-            (nominal_s109's sheet points at whitened RMS 82 at the engine's values; 32 with normal-only bonds, 7.6
-            with the compliant layer). Not the default: the layer follows the start's materials and, once the card
-            is carried, the fit spends the materials on the sheet points and the wrench (nominal_s109 from +-30 %
-            starts: 5 of 9 engine values inside the robust 2-sigma; :mod:`sysid.tack`, docs/benchmarks_log.md).
+            where it follows better (:func:`sysid.tack.nominal_tack`), then refitted at each fit's materials and the
+            materials fitted again until ``k_t`` settles within its sigma (:func:`sysid.tack.refit_layer`, at most
+            :data:`sysid.tack.LAYER_ROUNDS` fits; ``k_t``'s sigma enters the materials' robust sigma as a nuisance);
+            fit.json ``diagnostics.tack`` says what was decided and why. False (the default): no tack, a lift's card
+            stays on the table in every replay (nominal_s109's sheet points at whitened RMS 82 at the engine's
+            values; 7.6 with the layer). Not the default: not validated from starts 30 % off
+            (docs/benchmarks_log.md, session 54, s54-49lift).
         hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely
@@ -132,6 +134,12 @@ class FitOptions:
             carries the start into the answer (1.7 / 2.4 / 3.1 mm/s on nominal_s101 from starts 0.7 / 1.0 / 1.3 x the
             scene's materials; on this simulator's concealed-arm press-slide from 1.3 x, 14.7 mm/s against the
             recording's 10 and the gel modulus 0.835 x the truth, 0.949 x with it fitted; docs/benchmarks_log.md).
+        wrench_check: judge the recorded wrench against the gel's own marker shear by window
+            (:func:`sysid.wrench_check.check_wrench`) and leave the rows whose force contradicts it (it is then not the
+            force ON the gel, INTERFACES.md) out of the fit and the sensor's gains, named in the report's warnings and
+            fit.json ``diagnostics.wrench_check`` (True, the default; it trips on no press-slide of the reference set
+            and on every lift-and-fold's carried phase, where the reference records its bonds' force with the card's
+            sign; docs/benchmarks_log.md, session 54). False (``thinshell sysid --no-wrench-check``): every row fitted.
         probe_worker: make the calibration's secant probe in a second process beside its start replay, as
             ``thinshell diagnose`` does (:func:`sysid.diagnose.probe_worker.calibration_probe`: the same replays
             and values, one replay less wall time on two cores; where it applies); False (``thinshell sysid
@@ -177,6 +185,7 @@ class FitOptions:
     hold_unidentified: bool = True
     first_step: float | None = FIRST_STEP
     fit_eps_v: bool = True
+    wrench_check: bool = True
     probe_worker: bool = True
 
     def __post_init__(self) -> None:
@@ -309,6 +318,9 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                                  channels=None if options.channels is None else list(options.channels),
                                  simulation=simulation or None, arch=options.arch)
     notes = tuple(str(w.message) for w in caught)
+    wrench = check_wrench(model.evidence) if options.wrench_check and "wrench" in model.channels else None
+    if wrench is not None and wrench.tripped:  # before the probe's fork: its replays are judged the same way
+        model.row_mask = {"wrench": ~wrench.against}
     calibrated = tuple(p for p in options.calibration_params if p not in options.params)
     drive = fit_drive(model) if options.drive and model.sensor is not None else None
     if drive is not None:
@@ -349,15 +361,33 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     stage = None if sensor is None or not options.fit_eps_v else sensor.secant
     secant = stage.names if stage is not None and stage.accepted else ()
     fitted = [*options.params, *(n for n in secant if n not in options.params)]
-    result = fit(model, fitted, jacobian=jacobian, global_method=options.global_method,
-                 global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
-                 fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
-                 stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
-                 stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
-                 batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
-                 stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options),
-                 hold_unidentified=options.hold_unidentified, first_step=options.first_step)
+    nuisance = nuisance_of(model, options)
+    alternate = tack is not None and layer_on and SHEAR_STIFFNESS_SETTING not in options.params
+    if alternate:  # the layer held in the fit, its uncertainty carried into the materials' robust sigma
+        nuisance[SHEAR_STIFFNESS_SETTING] = layer_log_sigma(tack)
+    # with the layer, the carried card's sheet points (80 % of the residuals, whitened RMS 7 at the engine's values on
+    # nominal_s109: the layer's form error) would drive the materials (s109 from -30 %: modulus -64 %, -23 % weighed);
+    # each channel is weighed by its gap at the fit's start (sysid.fit.fit reweight_channels)
+    fit_args = dict(jacobian=jacobian, global_method=options.global_method,
+                    global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
+                    fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
+                    stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
+                    stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
+                    batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
+                    stop_trial_robust=options.stop_trial_robust, hold_unidentified=options.hold_unidentified,
+                    first_step=options.first_step, reweight_channels=alternate)
+    result = fit(model, fitted, nuisance=nuisance, **fit_args)
+    fit_replays = [result.sim_runs]
+    for _ in range(LAYER_ROUNDS - 1 if alternate else 0):  # k_t at the fitted materials, then the materials again
+        tack, moved = refit_layer(model, tack, dict(result.values))
+        if not moved:
+            break
+        nuisance[SHEAR_STIFFNESS_SETTING] = layer_log_sigma(tack)
+        result = fit(model, fitted, initial=dict(result.values), nuisance=nuisance, **fit_args)
+        fit_replays.append(result.sim_runs)
     result.warnings[:0] = list(notes)
+    if wrench is not None and wrench.tripped:
+        result.warnings.append(wrench.message(str(bag)))
     if model.gain_profile is not None:  # the gains at the fitted values, as the fit's best replay took them
         found = model.gain_profile.calibration_of(result.prediction_final)
         model.gain_profile = None
@@ -380,7 +410,9 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     if drive is not None:
         doc["diagnostics"]["drive"] = drive.summary()
     if tack is not None:
-        doc["diagnostics"]["tack"] = tack.summary()
+        doc["diagnostics"]["tack"] = {**tack.summary(), "fit_replays": fit_replays}
+    if wrench is not None:
+        doc["diagnostics"]["wrench_check"] = wrench.summary()
     doc["diagnostics"]["gel_law"] = {"element": (model.scene.get("simulation") or {}).get("gel_element",
                                                                                       SIMULATION_KEYS["gel_element"]),
                                      "requested": options.gel_element or "scene",

@@ -28,7 +28,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from sysid.calibration import SensorCalibration, fit_sensor_gains, nominal_sensor_calibration
+from sysid.calibration import SensorCalibration, fit_sensor_gains, masked_rows, nominal_sensor_calibration
 from sysid.gain_prior import GainPrior, gain_flags
 
 
@@ -67,7 +67,8 @@ class GainProfile:
         fitted to it; :attr:`last` holds them, and :meth:`calibration_of` finds them from the returned dict."""
         m = self.model
         data = {ch: m.data(ch) for ch in raw}
-        cal, asked = fit_sensor_gains(data, raw, m.sigma, m.marker_rest, self.nominal, None, prior=self.prior)
+        cal, asked = fit_sensor_gains(data, raw, m.sigma, m.marker_rest, self.nominal, masked_rows(m, None),
+                                      prior=self.prior)
         out = cal.apply(raw, m.marker_rest)
         self.last = (cal, asked)
         self._of[id(out)] = self.last

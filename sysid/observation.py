@@ -158,6 +158,10 @@ class ObservationModel:
             step still converges to the solver's tolerance; a start within a few noise units of the
             solution takes about half the Newton iterations. Forked replay workers inherit it.
             Replays whose result must not depend on another one (the nominal) are run with it None.
+        row_mask: None, or channel -> bool ``(n,)`` over its recorded rows: the rows the fit and the sensor's gains
+            use (False: weight 0 in :meth:`residuals` and :meth:`whiten_derivative`; the reported RMS keeps every row).
+            Set where a sensor check finds rows that contradict the channel's contract
+            (:mod:`sysid.wrench_check`).
         batch_sizing: the ``sim_core.batch.sizing.BatchSizing`` of batched replays of ``batch_size="auto"``
             (:func:`sysid.replay_batch.simulate_batch`), measured on their first call; None before it.
 
@@ -214,6 +218,7 @@ class ObservationModel:
         self.gain_profile = None  # sysid.gain_profile.GainProfile: the gains refitted at every predict
         self.marker_rest: np.ndarray | None = None
         self.sigma_scale: dict[str, float] | None = None
+        self.row_mask: dict[str, np.ndarray] | None = None
         self.drive_stiffness = math.inf
         self.drive_damping = 0.0
         commanded = not self.task and "pose_cmd" in evidence.channels_present
@@ -708,10 +713,16 @@ class ObservationModel:
                                 * self.residual_weight_root(ch)).reshape(-1) for ch in self.channels])
 
     def residual_weight_root(self, channel: str) -> np.ndarray | float:
-        """``sqrt(w)`` of every sample of ``channel``, broadcastable to its data ``(n, k, 1)``: the markers' weights
-        of pixels read off images (``Evidence.markers_uv_weight``), else 1.0."""
+        """``sqrt(w)`` of every sample of ``channel``, broadcastable to its data ``(n, k, 1)`` / ``(n, 1)``: the
+        markers' weights of pixels read off images (``Evidence.markers_uv_weight``) times the channel's
+        :attr:`row_mask`, else 1.0."""
         weight = self.evidence.markers_uv_weight if channel == "markers_uv" else None
-        return 1.0 if weight is None else np.sqrt(np.asarray(weight, dtype=float))[..., None]
+        root = 1.0 if weight is None else np.sqrt(np.asarray(weight, dtype=float))[..., None]
+        mask = None if self.row_mask is None else self.row_mask.get(channel)
+        if mask is None:
+            return root
+        shape = (-1,) + (1,) * (self.data(channel).ndim - 1)
+        return np.asarray(mask, dtype=float).reshape(shape) * root
 
     def _scale(self, channel: str) -> float:
         return 1.0 if self.sigma_scale is None else float(self.sigma_scale.get(channel, 1.0))
@@ -741,7 +752,8 @@ class ObservationModel:
 
         Returns:
             channel -> ``{"rms", "per_axis", "whitened_rms", "unit", "fitted"}``; for the wrench
-            ``rms`` is over the force components (N) and ``torque_rms`` over the torques (N m).
+            ``rms`` is over the force components (N) and ``torque_rms`` over the torques (N m); a channel with a
+            :attr:`row_mask` also ``whitened_rms_kept_rows`` (over the rows the fit used).
         """
         out = {}
         for ch in self._interp:
@@ -753,6 +765,10 @@ class ObservationModel:
                 "whitened_rms": float(np.sqrt(np.mean((axes / self.sigma[ch]) ** 2))),
                 "unit": CHANNEL_UNITS[ch], "fitted": ch in self.channels,
             }
+            keep = None if self.row_mask is None else self.row_mask.get(ch)
+            if keep is not None:  # the rows the fit used (the others contradict the channel's contract)
+                kept = e[np.asarray(keep, dtype=bool)].reshape(-1, e.shape[-1])
+                entry["whitened_rms_kept_rows"] = float(np.sqrt(np.mean((kept / self.sigma[ch]) ** 2)))
             if ch == "wrench":
                 entry["rms"] = float(np.sqrt(np.mean(axes[:, :3] ** 2)))
                 entry["torque_rms"] = float(np.sqrt(np.mean(axes[:, 3:] ** 2)))

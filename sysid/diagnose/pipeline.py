@@ -88,14 +88,20 @@ class Premise:
         stage: ``"score"`` or ``"signatures"``.
         drive: :meth:`sysid.drive_calibration.DriveCalibration.summary` of the recording.
         why: one sentence for the report.
+        wrench_check: :meth:`sysid.wrench_check.WrenchCheck.summary` of the recording (None without a wrench or
+            markers), and ``wrench_note`` its warning (empty where nothing contradicts): the report names the rows
+            whose recorded force opposes the gel's own marker shear. The diagnosis fits them as recorded (its
+            effects are read against a null calibrated the same way); ``thinshell sysid`` leaves them out.
     """
 
     stage: str
     drive: dict[str, Any]
     why: str
+    wrench_check: dict[str, Any] | None = None
+    wrench_note: str = ""
 
     def as_dict(self) -> dict[str, Any]:
-        return {"stage": self.stage, "drive": dict(self.drive), "why": self.why}
+        return {"stage": self.stage, "drive": dict(self.drive), "why": self.why, "wrench_check": self.wrench_check}
 
 
 def premise(bag: str | Path, settings: SignatureSettings) -> Premise:
@@ -109,6 +115,7 @@ def premise(bag: str | Path, settings: SignatureSettings) -> Premise:
     from sysid.drive_calibration import fit_drive
     from sysid.evidence import load_evidence
     from sysid.observation import ObservationModel
+    from sysid.wrench_check import check_wrench
 
     s = settings
     evidence = load_evidence(bag, include_image=False, recording_map=s.recording_map, t_start=s.t_start,
@@ -119,16 +126,18 @@ def premise(bag: str | Path, settings: SignatureSettings) -> Premise:
         model = ObservationModel(evidence, dt=s.dt, t_max=s.t_max, simulation=s.simulation, arch="numpy")
     drive = fit_drive(model)
     summary = drive.summary()
+    check = check_wrench(evidence)
+    sensor = {} if check is None else {"wrench_check": check.summary(), "wrench_note": check.message(str(bag))}
     if drive.compliant:
         return Premise(SIGNATURES, summary,
                        f"the measured pose lags its command as a compliant drive's would (delta-BIC "
                        f"{drive.delta_bic:.0f}, the lag explains {drive.explained:.2f} of the load): the replay's "
                        "effector is a fitted model, so each effect is read from its own signature against a "
-                       "calibrated null")
+                       "calibrated null", **sensor)
     return Premise(SCORE, summary,
                    f"the measured pose is its command ({drive.why}): the replay takes the recording's own effector "
                    "motion, so the candidates' score tests against the calibrated nominal replay are exact up to "
-                   "the missing effect")
+                   "the missing effect", **sensor)
 
 
 def with_gel_law(bag: str | Path, options: PipelineOptions) -> tuple[PipelineOptions, Any]:
@@ -166,6 +175,8 @@ def _stamp(doc: dict[str, Any], prem: Premise, options: PipelineOptions, wall_s:
     if not_applied:
         extra["notes"] = list(extra.get("notes") or []) + [
             f"{', '.join(not_applied)}: act on the {other} stage, which did not run on this recording"]
+    if prem.wrench_note:
+        extra["notes"] = list(extra.get("notes") or []) + [prem.wrench_note]
     out = {"schema_version": SCHEMA_VERSION, **{k: v for k, v in doc.items() if k not in ("extra", "schema_version")}}
     out["extra"] = extra
     return out

@@ -66,6 +66,12 @@ def pipeline_lines(doc: Mapping[str, Any]) -> list[str]:
              f"- effector drive: {drive.get('decision', '?')} (delta-BIC {drive.get('delta_bic')})"]
     if pipe.get("not_applied"):
         lines.append(f"- options not applied (they act on the other stage): {', '.join(pipe['not_applied'])}")
+    check = pipe.get("wrench_check") or {}
+    if check.get("tripped"):  # sysid.wrench_check: the recorded force opposes the gel's own marker shear
+        spans = ", ".join(f"{a:.2f}-{b:.2f} s" for a, b in check["spans_s"])
+        lines.append(f"- **sensor check: the recorded wrench contradicts the gel's markers** in {spans} "
+                     f"({check['rows_against']} rows, cosine {check['cosine']:+.2f}): there it is not the force ON the "
+                     "gel (INTERFACES.md); fitted as recorded here, left out by `thinshell sysid`")
     return lines + [""]
 
 

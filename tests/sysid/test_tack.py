@@ -94,29 +94,78 @@ LIFT_FOLD = PRESS_ONLY + (((0.0, 0.0, 0.003), 6), ((-0.005, 0.0, 0.0), 6), ((0.0
 in shear grows as the card arches), let go, wait."""
 
 
-def test_a_lift_fold_reads_the_concealed_shear_compliance_of_the_tack_back(tmp_path):
+@pytest.fixture(scope="module")
+def lift_fold(tmp_path_factory):
     """This simulator's lift-and-fold with a concealed compliant tack (bonds of 400 card weights, k_t 1 N/m a pair,
-    let go at 0.27 s): the decision keeps the compliant layer, reads k_t back within 25 % (the search's grid is a
-    factor 10, Brent's tolerance 10 %) with the truth inside its 2-sigma interval, and the replay follows the card
-    better than the normal-only bonds."""
+    let go at 0.27 s), its model and the tack's decision at the true materials."""
     from sysid.tack import LAYER_BOND_WEIGHTS, SHEAR_STIFFNESS_SETTING
 
     scene = scene_with(TRUE_PARAMS)
     dt = float(scene["dt"])
     w = adhesion_weight_scale(Simulation(load_scene(scene), dt=dt).model)
-    k_true = 1.0
     targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), LIFT_FOLD)
     truth = {**TRUE_PARAMS, ADHESION_PARAMETER: LAYER_BOND_WEIGHTS * w, RELEASE_TIME_SETTING: 27 * dt,
-             SHEAR_STIFFNESS_SETTING: k_true}
-    bag = write_bag(tmp_path / "bag", scene, add_noise(simulate_streams(scene, truth, targets), seed=9))
+             SHEAR_STIFFNESS_SETTING: K_TRUE}
+    bag = write_bag(tmp_path_factory.mktemp("fold") / "bag", scene,
+                    add_noise(simulate_streams(scene, truth, targets), seed=9))
     model = ObservationModel(load_evidence(bag), dt=0.01)
-    decision = nominal_tack(model, TRUE_PARAMS)
+    return model, nominal_tack(model, TRUE_PARAMS)
+
+
+K_TRUE = 1.0
+"""The concealed layer's k_t, N/m a pair."""
+
+
+def test_a_lift_fold_reads_the_concealed_shear_compliance_of_the_tack_back(lift_fold):
+    """The decision keeps the compliant layer, reads k_t back within 25 % (the search's grid is a factor 10, Brent's
+    tolerance 10 %) with the truth inside its 2-sigma interval, and the replay follows the card better than the
+    normal-only bonds."""
+    from sysid.tack import SHEAR_STIFFNESS_SETTING
+
+    model, decision = lift_fold
     assert decision.on and decision.layer is not None, decision.why
     layer = decision.layer
-    assert layer.stiffness == pytest.approx(k_true, rel=0.25), layer.profile
-    assert abs(np.log(layer.stiffness / k_true)) < 2 * layer.log_sigma
+    assert layer.stiffness == pytest.approx(K_TRUE, rel=0.25), layer.profile
+    assert abs(np.log(layer.stiffness / K_TRUE)) < 2 * layer.log_sigma
     assert decision.params[SHEAR_STIFFNESS_SETTING] == layer.stiffness
     assert model.parameter_value(SHEAR_STIFFNESS_SETTING) == pytest.approx(layer.stiffness)
     normal_only = dict(layer.profile)
     assert layer.rms < 0.5 * max(normal_only.values())
+    assert decision.summary()["layer_rounds"] == [[layer.stiffness, layer.log_sigma]]
     print(decision.why, layer.profile)
+
+
+def test_the_layer_refitted_at_other_materials_comes_back(lift_fold):
+    """A layer fitted where the materials were off (k_t 1.8 N/m, as a start's materials leave it) and refitted at the
+    fitted materials (here the truth) comes back within 25 % of the concealed k_t, becomes the model's nominal and is
+    recorded as a second round."""
+    import dataclasses
+
+    from sysid.tack import SHEAR_STIFFNESS_SETTING, layer_log_sigma, refit_layer
+
+    model, decision = lift_fold
+    off = dataclasses.replace(decision, params={**decision.params, SHEAR_STIFFNESS_SETTING: 1.8},
+                              rounds=((1.8, decision.layer.log_sigma),))
+    model.set_nominal({SHEAR_STIFFNESS_SETTING: 1.8})
+    back, moved = refit_layer(model, off, dict(TRUE_PARAMS))
+    assert moved, back.rounds
+    k = back.params[SHEAR_STIFFNESS_SETTING]
+    assert k == pytest.approx(K_TRUE, rel=0.25), back.layer.profile
+    assert model.parameter_value(SHEAR_STIFFNESS_SETTING) == k and len(back.rounds) == 2
+    assert layer_log_sigma(back) >= abs(np.log(k / 1.8))  # the move is part of the layer's uncertainty
+    model.set_nominal({SHEAR_STIFFNESS_SETTING: decision.params[SHEAR_STIFFNESS_SETTING]})  # the fixture's again
+
+
+def test_rows_per_datum_is_the_residual_correlation_time():
+    """An AR(1) residual of correlation 0.8 a row carries one datum in (1 + 0.8) / (1 - 0.8) = 9 rows; a white one
+    in 1."""
+    from sysid.tack import _rows_per_datum
+
+    rng = np.random.default_rng(3)
+    e = rng.normal(size=(4000, 30, 3))
+    ar = np.empty_like(e)
+    ar[0] = e[0]
+    for i in range(1, len(e)):
+        ar[i] = 0.8 * ar[i - 1] + np.sqrt(1 - 0.8 ** 2) * e[i]
+    assert 7 <= _rows_per_datum(ar) <= 11
+    assert _rows_per_datum(e) == 1

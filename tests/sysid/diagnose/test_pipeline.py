@@ -113,6 +113,27 @@ def test_the_recording_decides_the_stage(tmp_path, streams):
     assert r.stage == "signatures" and r.drive["delta_bic"] > DRIVE_MIN_DELTA_BIC, r
 
 
+def test_the_report_names_a_wrench_that_contradicts_the_gels_markers():
+    """nominal_s109 (the reference's lift-and-fold): the premise's sensor check finds the carried phase's recorded
+    force opposing the markers' shear; the stamped report carries the note and the pipeline section names it.
+    nominal_s101 (a press-slide) has no note."""
+    from sysid.diagnose.pipeline import PipelineOptions, _stamp
+    from sysid.diagnose.report import pipeline_lines
+
+    lift = reference_bag("nominal_s109")
+    p = premise(lift, _options(lift))
+    assert p.wrench_check["tripped"] and p.wrench_check["rows_against"] > 100
+    opts = options_from_args(build_parser().parse_args([str(lift)]))
+    doc = _stamp({"bag": str(lift), "extra": {}}, p, opts, 0.0)
+    assert any("topic wrench contradicts" in n for n in doc["extra"]["notes"])
+    assert doc["extra"]["pipeline"]["wrench_check"]["tripped"]
+    assert any("recorded wrench contradicts the gel's markers" in line for line in pipeline_lines(doc))
+    ref = reference_bag("nominal_s101")
+    r = premise(ref, _options(ref))
+    assert not r.wrench_check["tripped"] and r.wrench_note == ""
+    assert isinstance(opts, PipelineOptions)
+
+
 @pytest.mark.parametrize("drift", [0.0, DRIFT_N], ids=["nominal", "drift"])
 def test_defaults_name_a_concealed_force_drift_on_this_simulators_recording(tmp_path, streams, drift):
     drifted = dict(streams)
