@@ -57,10 +57,12 @@ recording chooses (:func:`choose_gel_law`) instead of a named one."""
 TACTILE = ("markers_xyz", "markers_uv", "wrench")
 """Channels whose whitened sums of squares are compared."""
 
-PROFILED: tuple[str, ...] = ("gel.youngs_modulus", "friction.gel_sheet")
-"""Parameters fitted for each law before the comparison: the modulus, which the laws' difference trades against,
-and the gel-sheet friction, which sets the slide's shear (from a start with both x0.7 this simulator's Green-strain
-press-slide fitted with the modulus alone took the modulus to 0.56-0.61 x the truth and could not part the laws)."""
+PROFILED: tuple[str, ...] = ("gel.youngs_modulus", "friction.gel_sheet", "contact.eps_v")
+"""Parameters fitted for each law before the comparison (every column from the replay's tangents): the modulus,
+which the laws' difference trades against; the gel-sheet friction, which sets the slide's shear (from a start with
+both x0.7 this simulator's Green-strain press-slide fitted with the modulus alone took the modulus to 0.56-0.61 x the
+truth and could not part the laws); the lagged friction's stick speed, which the calibration fits too (on
+nominal_s101 at the scene's 10 mm/s both laws stay at whitened RMS 4.4-6.6, fitted to 3.4-3.5 mm/s 1.9-2.5)."""
 
 PROFILE_REPLAYS = 3
 """Replay budget of each law's fit of :data:`PROFILED` (the start's replay, with tangents, included): two steps.
@@ -119,22 +121,26 @@ def _whitened(model: ObservationModel, prediction: Mapping[str, np.ndarray], cha
                             / model.sigma[ch]).ravel() for ch in channels])
 
 
-def null_spread(model: ObservationModel, e: np.ndarray, g: np.ndarray, channels: Sequence[str]) -> float:
-    """Standard deviation of ``2 e.g`` with ``e`` noise of the residuals' own time correlation: ``2 sqrt(S)``, ``S``
-    the Newey-West long-run variance (Bartlett weights, Andrews' window) of the products ``e_i g_i`` summed per time
-    bin (:func:`sysid.covariance.residual_bin_s`).
+def null_spread(e: np.ndarray, g: np.ndarray, times_s: np.ndarray, bin_s: float) -> float:
+    """Standard deviation of ``2 e.g`` for noise ``e`` with the time correlation ``e`` itself shows: ``2 sqrt(S)``,
+    ``S`` the Newey-West long-run variance (Bartlett weights, Andrews' window: :mod:`sysid.covariance`) of the
+    products ``e_i g_i`` summed per time bin. For white ``e`` of unit variance it is ``2 |g|``; a positive
+    correlation of neighbouring samples raises it.
 
     Args:
-        model: the observation model whose recording ``e`` and ``g`` are of (its channel stamps place them in time).
-        e: the reference law's whitened residual ``(m,)`` (:func:`_whitened` order).
-        g: the whitened difference of the two laws' predictions ``(m,)``.
-        channels: the channels of ``e`` and ``g``, in order.
+        e: whitened residual ``(m,)`` standing for the noise (the better law's).
+        g: whitened difference of the two laws' predictions ``(m,)``.
+        times_s: time of each element ``(m,)``, s.
+        bin_s: time bin width, s (> 0).
     """
-    stamps = {ch: np.asarray(model.evidence.t_ns[ch]) for ch in channels}
-    sizes = {ch: int(np.asarray(model.data(ch)).size) for ch in channels}
-    bins = time_bins(residual_times_s(stamps, sizes, channels), residual_bin_s(model))
-    scores = bin_scores(np.asarray(g, dtype=float)[:, None], np.asarray(e, dtype=float), bins)
+    scores = bin_scores(np.asarray(g, dtype=float)[:, None], np.asarray(e, dtype=float), time_bins(times_s, bin_s))
     return float(2.0 * math.sqrt(max(float(hac_meat(scores, andrews_bandwidth(scores))[0, 0]), 0.0)))
+
+
+def _residual_times(model: ObservationModel, channels: Sequence[str]) -> np.ndarray:
+    """Time (s) of each element of :func:`_whitened`'s vector of ``channels``, ``(m,)``."""
+    stamps = {ch: np.asarray(model.evidence.t_ns[ch]) for ch in channels}
+    return residual_times_s(stamps, {ch: int(np.asarray(model.data(ch)).size) for ch in channels}, channels)
 
 
 def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01, t_max: float | None = None,
@@ -207,7 +213,8 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
     margin = cost[ranked[1]] - cost[ranked[0]]
     null_sd, decided = math.nan, True
     if ranked[0] == other:
-        null_sd = null_spread(model, residual[other], residual[reference] - residual[other], present)
+        null_sd = null_spread(residual[other], residual[reference] - residual[other], _residual_times(model, present),
+                              residual_bin_s(model))
         decided = margin > null_sigmas * null_sd
     return GelLawChoice(chosen=other if ranked[0] == other and decided else reference, cost=cost, rms=rms,
                         margin=margin, channels=tuple(present), reference=reference, fitted=fitted,
