@@ -89,6 +89,8 @@ class GelLawChoice:
         channels: the compared channels.
         reference: the law kept unless the data reject it (the scene's).
         fitted: law -> its fitted :data:`PROFILED` values (empty where nothing was fitted).
+        gains: law -> the sensor gains its fitted replay asked for before their prior bounded them (``force_gain``,
+            ``marker_scale_xy``, ``marker_scale_z``, ...; empty without ``gain_prior``).
         null_sd: standard deviation of the reference's delta-BIC under the null (module docstring); NaN where the
             reference law is the best (no change to test).
         decided: False where the best law is not the reference but its delta-BIC is within ``NULL_SIGMAS * null_sd``
@@ -104,6 +106,7 @@ class GelLawChoice:
     fitted: dict[str, dict[str, float]] | None = None
     null_sd: float = math.nan
     decided: bool = True
+    gains: dict[str, dict[str, float]] | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready: the chosen law, the margin and its null spread, each law's cost, fitted values and whitened
@@ -111,6 +114,7 @@ class GelLawChoice:
         return {"chosen": self.chosen, "delta_bic": self.margin, "reference": self.reference,
                 "null_sd": None if math.isnan(self.null_sd) else self.null_sd, "decided": self.decided,
                 "cost": dict(self.cost), "fitted": {law: dict(v) for law, v in (self.fitted or {}).items()},
+                "gains_asked": {law: dict(v) for law, v in (self.gains or {}).items()},
                 "whitened_rms": {law: dict(r) for law, r in self.rms.items()}, "channels": list(self.channels)}
 
 
@@ -180,6 +184,7 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
     rms: dict[str, dict[str, float]] = {}
     fitted: dict[str, dict[str, float]] = {}
     residual: dict[str, np.ndarray] = {}
+    gains: dict[str, dict[str, float]] = {}
     present = [ch for ch in channels if ch in evidence.channels_present]
     if not present:
         raise ValueError(f"choose_gel_law: the recording has none of the channels {list(channels)}")
@@ -205,6 +210,9 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
             prediction = result.prediction_final
         else:
             prediction = model.predict(model.simulate(values))
+        found = None if model.gain_profile is None else model.gain_profile.calibration_of(prediction)
+        if found is not None:
+            gains[law] = {k: float(v) for k, v in found[1].items()}
         rms[law] = whitened_rms(model, prediction, present)
         residual[law] = _whitened(model, prediction, present)
         cost[law] = float(residual[law] @ residual[law])
@@ -218,4 +226,4 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
         decided = margin > null_sigmas * null_sd
     return GelLawChoice(chosen=other if ranked[0] == other and decided else reference, cost=cost, rms=rms,
                         margin=margin, channels=tuple(present), reference=reference, fitted=fitted,
-                        null_sd=null_sd, decided=decided)
+                        null_sd=null_sd, decided=decided, gains=gains)
