@@ -295,7 +295,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         warnings.simplefilter("always")
         evidence = load_evidence(bag, scene_path=options.scene, include_image="auto",
                                  recording_map=options.recording_map, t_start=options.t_start, t_end=options.t_end)
-        # auto: one replay per law here (it starts Taichi, so the calibration's secant probe is then not forked)
+        # auto: three replays per law here (it starts Taichi, so the calibration's secant probe is then not forked)
         law = None if options.gel_element != AUTO_LAW else choose_gel_law(
             evidence, dt=options.dt, t_max=options.t_max, arch=options.arch, simulation=simulation)
         if options.gel_element is not None:

@@ -11,7 +11,7 @@
   choice is the Green-strain law (at the scene's values whitened RMS markers / pixels / wrench 5.28 / 7.63 / 3.72
   against 6.33 / 9.14 / 3.88 for the default law; delta-BIC 2.0e6).
 
-- The choice does not follow the start (session 54): each law is compared at its own fitted modulus, friction and
+- The choice does not follow the start (session 54): each law is compared at its own fitted modulus, friction,
   sensor gains, and a law other than the scene's is taken only where its delta-BIC exceeds twice its spread under
   the null (:func:`sysid.gel_law.null_spread`). From starts with modulus and friction x0.7 and x1.3 both concealed
   press-slides choose the law that made them (delta-BIC 4.4e4 / 4.4e4 for Green strain against a null spread of
