@@ -1,27 +1,22 @@
-"""The gel's law chosen by the data (:mod:`sysid.gel_law`): one replay per law, the smaller whitened sum of squares.
+"""The gel's law chosen by the data (:mod:`sysid.gel_law`): each law fitted, the smaller whitened sum of squares,
+a change from the scene's law only beyond the comparison's spread under the null.
 
 - This simulator's own press-slides of the card scene (pressed 1.45 mm by a kinematic arm, slid 6 mm), one made with
   the Green-strain gel and one with the default Stable Neo-Hookean gel, noise at the reference bags' levels, each
-  written with a ``scene.yaml`` that does not name its law (concealed): the choice finds the law that made each.
-  Measured: the two laws' noise-free streams differ by 3.2 / 12.7 / 62 noise levels (markers z / xy, F_z; peak load
-  26 N against 14 N); the true law's replay reads whitened RMS markers / pixels / wrench 0.85 / 0.75 / 0.74 (Green
-  strain) and 0.92 / 0.94 / 1.19 (default), the other 6.0 / 6.5 / 13.1 and 7.3 / 10.5 / 37.3; delta-BIC 9.6e4 and
-  3.7e5.
-- The bundled reference recording nominal_s101 (MuJoCo 4.0, whose flex solids are Saint Venant-Kirchhoff): the
-  choice is the Green-strain law (at the scene's values whitened RMS markers / pixels / wrench 5.28 / 7.63 / 3.72
-  against 6.33 / 9.14 / 3.88 for the default law; delta-BIC 2.0e6).
-
-- The choice does not follow the start (session 54): each law is compared at its own fitted modulus, friction,
-  sensor gains, and a law other than the scene's is taken only where its delta-BIC exceeds twice its spread under
-  the null (:func:`sysid.gel_law.null_spread`). From starts with modulus and friction x0.7 and x1.3 both concealed
-  press-slides choose the law that made them (delta-BIC 4.4e4 / 4.4e4 for Green strain against a null spread of
-  0.7e3 / 2.3e3; 2.7e5 / 2.2e5 for the default law); this simulator's shallow press made with the default law, which
-  a choice at the start's values took for Green strain from x1.3 and x2 (delta-BIC 21 / 64), keeps the default law
-  from x0.7, x1.3 and x2 (the fitted laws differ by 1.2 against a null spread of 2.2).
+  written with a ``scene.yaml`` that does not name its law (concealed): the two laws' noise-free streams differ by
+  3.2 / 12.7 / 62 noise levels (markers z / xy, F_z; peak load 26 N against 14 N).
+- The choice does not follow the start (session 54): each law is compared at its own fitted gel modulus, gel-sheet
+  friction, stick speed and sensor gains (three replays a law), and a law other than the scene's is taken only where
+  its delta-BIC exceeds twice its spread under the null (:func:`sysid.gel_law.null_spread`). From starts with
+  modulus and friction x0.7 and x1.3 both concealed press-slides choose the law that made them (Green strain by
+  delta-BIC 4.5e4 / 4.4e4 against a null spread of 0.5e3 / 1.9e3; the default law by 2.8e5 / 2.2e5). This
+  simulator's shallow press made with the default law, which a choice at the start's values took for Green strain
+  from x1.3 and x2 (delta-BIC 21 / 64, session 53), keeps the default law from x0.7, x1.3 and x2 (the fitted laws
+  differ by 0.5-1.2).
 - The null spread is the long-run standard deviation of ``2 e.g``: checked against the spread of many noise draws,
   white and time-correlated.
 
-Each profiled choice makes three replays a law: about 7 CPU s a card press-slide, 1 s the shallow press.
+About 75 CPU s in all: a profiled choice is 4-7 CPU s on a card press-slide, 1 s on the shallow press.
 """
 
 from __future__ import annotations
