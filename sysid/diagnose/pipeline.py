@@ -33,7 +33,7 @@ apply to that stage.
 
 ``--gel-element auto`` chooses the gel's law per recording before either stage (:func:`with_gel_law`,
 :func:`sysid.gel_law.choose_gel_law`: each law's modulus, friction, stick speed and sensor gains fitted from the scene's values,
-three replays a law, the scene's law kept unless the other's whitened sum of squares is smaller beyond twice its spread
+up to five replays a law, the scene's law kept unless the other's whitened sum of squares is smaller beyond twice its spread
 under the null); the choice is in ``extra.pipeline.gel_law``, and both stages replay that law.
 """
 
