@@ -120,6 +120,17 @@ class GelLawChoice:
                 "whitened_rms": {law: dict(r) for law, r in self.rms.items()}, "channels": list(self.channels)}
 
 
+class _GainsFromRest(GainProfile):
+    """:class:`sysid.gain_profile.GainProfile` that first takes the markers' rest positions from the first raw
+    prediction it sees (its first stamp), as :func:`sysid.calibration.calibrate` does, so that the marker scales are
+    profiled too (without rest positions only the force gain and the camera are)."""
+
+    def __call__(self, raw: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        if self.model.marker_rest is None and "markers_xyz" in raw:
+            self.model.marker_rest = np.asarray(raw["markers_xyz"][0], dtype=float)
+        return super().__call__(raw)
+
+
 def _whitened(model: ObservationModel, prediction: Mapping[str, np.ndarray], channels: Sequence[str]) -> np.ndarray:
     """``(data - prediction) / sigma`` of ``channels``, concatenated as :func:`sysid.covariance.residual_times_s`
     places them (each channel time first, row-major), ``(m,)``."""
@@ -200,7 +211,7 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
         drive = fit_drive(model)
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
         if gain_prior is not None:
-            model.gain_profile = GainProfile(model, gain_prior)
+            model.gain_profile = _GainsFromRest(model, gain_prior)
         held = {n: v for n, v in values.items() if n not in profile}
         if held:
             model.set_nominal(held)
