@@ -59,8 +59,8 @@ def test_the_data_choose_the_law_that_made_the_recording_from_starts_30_percent_
     law, bag = concealed
     choice = choose_gel_law(load_evidence(bag), values=off(factor))
     assert choice.chosen == law and choice.decided, choice.summary()
-    # the true law, fitted (up to five replays), leaves a whitened sum of squares 4.1-63 times smaller than the other's: a
-    # delta-BIC of tens of thousands, far beyond the null's spread where the other law is the scene's default
+    # the true law, fitted (up to five replays), leaves a whitened sum of squares 4.1-63 times smaller than the
+    # other's: a delta-BIC of tens of thousands, far beyond the null's spread where the other law is the scene's default
     other = next(name for name in choice.cost if name != law)
     assert choice.cost[other] > 3.0 * choice.cost[law], choice.summary()
     assert choice.margin > 1.0e4, choice.summary()
