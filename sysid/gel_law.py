@@ -67,9 +67,8 @@ nominal_s101 at the scene's 10 mm/s both laws stay at whitened RMS 4.4-6.6, fitt
 PROFILE_REPLAYS = 5
 """Replay budget of each law's fit of :data:`PROFILED` (the start's replay, with tangents, included; the fit's stops
 end it earlier where it has converged). On nominal_s101 from the +30 % start three replays left the default law's fit
-short of its valley (whitened sum of squares 752,212 against 561,846 from -30 %), which chose the Green-strain law
-there and the default law from the scene and -30 %; with five it reaches 490,446 and the choice is the same from all
-three starts (docs/benchmarks_log.md, session 54)."""
+short of its valley (whitened sum of squares 752,212 against 561,846 from -30 %; five replays: 490,446), and the
+choice then followed the start (docs/benchmarks_log.md, session 54)."""
 
 NULL_SIGMAS = 2.0
 """The other law replaces the reference law only where its delta-BIC exceeds this many standard deviations of the
