@@ -10,10 +10,11 @@ gel sinks further once it slides (docs/known_answers.md, "The slide's depth gap 
 a softer gel at small strain), so a comparison at one shared modulus, the start's, follows the start where the
 recording barely parts the laws: this simulator's shallow press made with the default law chose the Green-strain
 law from a start x1.3 / x2 its modulus (delta-BIC 21 / 64, docs/benchmarks_log.md, session 53 "49law"). Each law's
-modulus (:data:`PROFILED`) is therefore fitted first (:func:`sysid.fit.fit`, tangent Jacobian, at most
-:data:`PROFILE_REPLAYS` replays a law, the other parameters at ``values``), through the effector's drive fitted from
-the recording (:func:`sysid.drive_calibration.fit_drive`) and the scene's sensor calibration, on the tactile
-channels only. The laws have the same number of parameters, so the difference of their Bayesian information
+modulus, friction and stick speed (:data:`PROFILED`) are therefore fitted first (:func:`sysid.fit.fit`, tangent
+Jacobian, at most :data:`PROFILE_REPLAYS` replays a law, the other parameters at ``values``), through the effector's
+drive fitted from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor gains (force gain,
+marker scales, camera) refitted in closed form at every replay within their prior
+(:class:`sysid.gain_profile.GainProfile`), on the tactile channels only. The laws have the same number of parameters, so the difference of their Bayesian information
 criteria is the difference of their whitened sums of squares (``-2 log L`` up to a constant shared by both).
 
 **The margin from the null.** Let ``R`` be the reference law (the scene's) and ``A`` the other, ``e`` the whitened
@@ -21,9 +22,9 @@ residual of ``R`` and ``g = r_R - r_A`` the whitened difference of the two laws'
 the recording (``e`` its noise), ``delta = |r_R|^2 - |r_A|^2 = 2 e.g - |g|^2``: mean ``-|g|^2``, standard deviation
 ``2 sqrt(Var(e.g))``, with ``Var(e.g)`` the long-run variance of the products ``e_i g_i`` binned in time
 (Newey-West with Andrews' window, :mod:`sysid.covariance`: the residuals' time correlation counts, a white-noise
-count of the samples would overstate the evidence). ``A`` replaces ``R`` only where ``delta`` exceeds
-:data:`NULL_SIGMAS` times that spread (a one-sided test at about 2.3 % under the null; the residual of a model that
-does not follow the recording inflates ``e`` and so the margin: conservative). Otherwise the reference law is kept,
+count of the samples would overstate the evidence), ``e`` estimated by the better law's residual. ``A`` replaces ``R``
+only where ``delta`` exceeds :data:`NULL_SIGMAS` times that spread (a one-sided test at about 2.3 % under the null; the
+residual of a model that does not follow the recording inflates ``e`` and so the margin: conservative). Otherwise the reference law is kept,
 and :attr:`GelLawChoice.decided` says so.
 
 This module reads a recording only through :mod:`sysid.evidence` and replays it through
