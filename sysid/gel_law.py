@@ -14,8 +14,8 @@ modulus, friction and stick speed (:data:`PROFILED`) are therefore fitted first 
 Jacobian, at most :data:`PROFILE_REPLAYS` replays a law, the other parameters at ``values``), through the effector's
 drive fitted from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor gains (force gain,
 marker scales, camera) refitted in closed form at every replay within their prior
-(:class:`sysid.gain_profile.GainProfile`), on the tactile channels only. The laws have the same number of parameters, so the difference of their Bayesian information
-criteria is the difference of their whitened sums of squares (``-2 log L`` up to a constant shared by both).
+(:class:`sysid.gain_profile.GainProfile`), on the tactile channels only. The laws have the same number of
+parameters, so the difference of their Bayesian information criteria is the difference of their whitened sums of squares (``-2 log L`` up to a constant shared by both).
 
 **The margin from the null.** Let ``R`` be the reference law (the scene's) and ``A`` the other, ``e`` the whitened
 residual of ``R`` and ``g = r_R - r_A`` the whitened difference of the two laws' fitted predictions. Where ``R`` made
@@ -24,8 +24,8 @@ the recording (``e`` its noise), ``delta = |r_R|^2 - |r_A|^2 = 2 e.g - |g|^2``: 
 (Newey-West with Andrews' window, :mod:`sysid.covariance`: the residuals' time correlation counts, a white-noise
 count of the samples would overstate the evidence), ``e`` estimated by the better law's residual. ``A`` replaces ``R``
 only where ``delta`` exceeds :data:`NULL_SIGMAS` times that spread (a one-sided test at about 2.3 % under the null; the
-residual of a model that does not follow the recording inflates ``e`` and so the margin: conservative). Otherwise the reference law is kept,
-and :attr:`GelLawChoice.decided` says so.
+residual of a model that does not follow the recording inflates ``e`` and so the margin: conservative). Otherwise
+the reference law is kept, and :attr:`GelLawChoice.decided` says so.
 
 This module reads a recording only through :mod:`sysid.evidence` and replays it through
 :class:`sysid.observation.ObservationModel`.
