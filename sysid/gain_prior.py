@@ -48,7 +48,8 @@ BOUND_CAUSES: dict[tuple[str, str], str] = {
     ("marker_scale_xy", "high"): ("the simulated markers move less across the gel than the recorded ones: too little "
                                   "lateral load (friction too low) or a gel too stiff in shear (modulus, Poisson "
                                   "ratio, a gel mesh too coarse), or a recorded gel that softens in shear as it "
-                                  "slides (a finite-strain law other than the model's: try --gel-element auto)"),
+                                  "slides (a finite-strain law other than the model's: try --gel-element "
+                                  "green_strain, or auto to let the recording choose)"),
     ("marker_scale_z", "low"): ("the simulated gel is pressed deeper than the recorded one: too much normal load (a "
                                 "too stiff drive or contact) or a gel too soft in compression"),
     ("marker_scale_z", "high"): ("the simulated gel is pressed less deep than the recorded one: too little normal "
@@ -56,7 +57,8 @@ BOUND_CAUSES: dict[tuple[str, str], str] = {
                                  "mesh too coarse through its thickness), or a recorded gel that sinks further "
                                  "when it slides at the same load (compare the pressed and the sliding marker "
                                  "depth per newton; a linear-elastic pad stiffens; a gel whose law is written in "
-                                 "the Green strain sinks: try --gel-element auto)"),
+                                 "the Green strain sinks: try --gel-element green_strain, or auto to let the recording "
+                                 "choose)"),
     ("fx", "low"): "the camera's focal length or distance in the scene is off (a different lens or mount)",
     ("fx", "high"): "the camera's focal length or distance in the scene is off (a different lens or mount)",
     ("fy", "low"): "the camera's focal length or distance in the scene is off (a different lens or mount)",

@@ -32,8 +32,9 @@ contract, ``schema_version``, and ``extra.pipeline`` with the stage that named (
 apply to that stage.
 
 ``--gel-element auto`` chooses the gel's law per recording before either stage (:func:`with_gel_law`,
-:func:`sysid.gel_law.choose_gel_law`: one replay per law at the scene's values, the smaller whitened sum of squares,
-two replays); the choice is in ``extra.pipeline.gel_law``, and both stages replay that law.
+:func:`sysid.gel_law.choose_gel_law`: each law's modulus, friction, stick speed and sensor gains fitted from the scene's values,
+up to five replays a law, the scene's law kept unless the other's whitened sum of squares is smaller beyond twice its spread
+under the null); the choice is in ``extra.pipeline.gel_law``, and both stages replay that law.
 """
 
 from __future__ import annotations
