@@ -236,7 +236,9 @@ def unheld_rows(kept: dict, name: str, rows: int, tail: tuple[int, ...] = (), sp
     find it again; in place of a free one too short, else beside them, or outside ``kept`` when
     ``spares`` are all held). So an evaluation's rows are never written while anything can read them, and a launch
     whose former results are gone allocates nothing. Its values are a former launch's: the caller's kernel writes
-    the rows that will be read (and zeroes its sums).
+    the rows that will be read (and zeroes its sums). The host arrays' :class:`sim_core.array_pool.ArrayPool` keeps
+    the same rule but hands out row views of a longer block; a Taichi ndarray has no views, so here a whole array of
+    a capacity is handed out and the launch is told its rows.
 
     Raises:
         ValueError: ``rows`` or a ``tail`` dimension not positive (Taichi allocates no empty ndarray).
