@@ -624,9 +624,12 @@ def test_device_rows_are_reused_only_once_no_evaluation_holds_them(ti_cpu, monke
     arrays no evaluation holds (``buffers.unheld_rows``): a Hessian kept by a caller keeps its values through later
     launches at other positions (its array is not handed to them), every launch's Hessians equal the host path's bit
     for bit, and once the earlier evaluations are gone the launches allocate no device array."""
+    from sim_core.energies.contact import batch_kernel
     from sim_core.energies.contact.batch_kernel import PairBatch
     from sim_core.ti_kernels import buffers, device_copy
 
+    # this thread's spare device arrays from no earlier test (else the first launches here may take theirs)
+    monkeypatch.setitem(batch_kernel._ARRAYS.__dict__, "_spares", {})
     x, linked, alone = _potentials()
     PairBatch(*alone)
     rng = np.random.default_rng(28)
