@@ -725,14 +725,30 @@ class ContactSet:
         """:meth:`friction` on the Taichi backend when only pair contacts touch: the frames and tangent
         bases of the active pairs of both kinds from one launch
         (:func:`sim_core.energies.contact.setup_kernel.friction_frames`; the values of the pair potentials'
-        ``contact_frames`` and of ``tangent_basis``, bit for bit), rows in the same order; on CUDA the launch reads
-        ``x^n`` where the solver's terms hold it on the device (:meth:`_held_positions`), if they do."""
+        ``contact_frames`` and of ``tangent_basis``, bit for bit), rows in the same order; on CUDA the rows built and
+        kept on the device (:meth:`_device_friction`), the launch reading ``x^n`` where the solver's terms hold it on
+        the device (:meth:`_held_positions`), if they do."""
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
+        from sim_core.ti_backend import current_arch
+
+        pots = (vt, ee)
+        rows = [pot.active_distances(x_n) for pot in pots]
+        build = self._device_friction if current_arch() == "cuda" else self._host_rows_friction
+        friction = build(x_n, dt, pots, rows)
+        if friction is not None:
+            friction.workspace = self.workspace
+            friction.row_sources = [FrictionRowSource(None, pot, active) for pot, (active, _) in zip(pots, rows)
+                                    if len(active)]
+        return friction
+
+    def _host_rows_friction(self, x_n: np.ndarray, dt: float, pots: tuple, rows: list) -> LaggedFriction | None:
+        """:meth:`_pair_friction`'s rows off CUDA: the active pairs' vertices, sides and Coulomb coefficients on the
+        host, their frames from one launch read back (``rows``: each potential's active rows and distances at
+        ``x_n``)."""
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.energies.contact.setup_kernel import friction_frames
         from sim_core.energies.friction.kernel import TiLaggedFriction
 
-        pots = (vt, ee)
-        rows = [pot.active_distances(x_n) for pot in pots]
         split = len(rows[0][0])
         vertices = np.concatenate([np.take(pot.vertices, active, axis=0) for pot, (active, _) in zip(pots, rows)])
         if not len(vertices):
@@ -744,11 +760,26 @@ class ContactSet:
         sides = np.concatenate([pot.sides[active] for pot, (active, _) in zip(pots, rows)])
         weights, normal, tangent = friction_frames(x_n, vertices, sides, split, self._held_positions(x_n))
         lam = np.concatenate([pot.stiffness * (pot.eps - d) for pot, (_, d) in zip(pots, rows)])
-        friction = TiLaggedFriction(vertices, weights, tangent, lam, mu, x_n, self.model.contact.eps_v, dt)
-        friction.workspace = self.workspace
-        friction.row_sources = [FrictionRowSource(None, pot, active) for pot, (active, _) in zip(pots, rows)
-                                if len(active)]
-        return friction
+        return TiLaggedFriction(vertices, weights, tangent, lam, mu, x_n, self.model.contact.eps_v, dt)
+
+    def _device_friction(self, x_n: np.ndarray, dt: float, pots: tuple, rows: list) -> LaggedFriction | None:
+        """:meth:`_pair_friction`'s rows on CUDA, built where the friction's kernels read them
+        (:func:`~sim_core.energies.friction.device_rows.friction_on_device`: one upload of the active pairs' vertices,
+        sides and distances, ``x^n`` read where the solver's terms hold it, nothing read back); None where no body
+        pair has a positive Coulomb coefficient (rows of pairs whose coefficient is zero add nothing)."""
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
+        from sim_core.energies.friction.device_rows import friction_on_device
+
+        table = self.coulomb.table()
+        vertices = [pot.active_vertices(x_n) for pot, (active, _) in zip(pots, rows) if len(active)]
+        if not vertices or not np.any(table > 0):
+            return None
+        vt, ee = pots
+        return friction_on_device(
+            x_n, self._held_positions(x_n), np.concatenate(vertices),
+            np.concatenate([pot.sides[active] for pot, (active, _) in zip(pots, rows)]),
+            np.concatenate([d for _, d in rows]), len(rows[0][0]), (vt.eps, ee.eps, vt.stiffness, ee.stiffness),
+            self.coulomb.vertex_body, table, self.model.contact.eps_v, dt)
 
     def end_step(self, x: np.ndarray, memory: CollisionMemory) -> CollisionMemory:
         """Remember the sides of the pairs active at the converged positions ``x``.
