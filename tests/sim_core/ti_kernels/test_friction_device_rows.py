@@ -108,11 +108,16 @@ def test_device_rows_evaluate_as_the_reference(ti_cpu, scale):
 
 
 def _emulate_cuda(monkeypatch) -> None:
-    """Every sim_core arch query answers "cuda" (the CUDA paths, emulated on the CPU arch)."""
+    """Every loaded sim_core module's arch query answers "cuda" (the CUDA paths, emulated on the CPU arch), the byte
+    copies' excepted (they copy host memory on the CPU arch: ``benchmarks/emulated_cuda.py``)."""
     import sys
 
+    from sim_core import ti_backend
+    from sim_core.ti_kernels import device_copy
+
     for name, module in list(sys.modules.items()):
-        if name.startswith("sim_core") and hasattr(module, "current_arch"):
+        if name.startswith("sim_core") and module is not device_copy \
+                and getattr(module, "current_arch", None) is ti_backend.current_arch:
             monkeypatch.setattr(module, "current_arch", lambda: "cuda")
 
 
@@ -142,11 +147,42 @@ def test_contact_set_builds_the_friction_rows_on_the_device_path(ti_cpu, monkeyp
 
 
 @pytest.mark.skipif(TEST_ARCH != "cpu", reason="emulates the CUDA paths on the CPU arch")
-def test_lockstep_on_the_device_rows_equals_separate_runs(ti_cpu, monkeypatch):
-    """A Forming batch of 3 copies stepped in lockstep on CUDA's paths (emulated; the envelope solver, the friction
-    from device rows) ends each copy where its separate run on the same paths ends, to the solver's tolerance; a copy
-    forced to diverge (NaN controls) fails alone."""
-    from tests.sim_core.batch.test_lockstep_device import lockstep_against_separate_runs
+def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkeypatch):
+    """Three Forming copies stepped in lockstep on CUDA's paths (emulated on the CPU arch; the envelope solver, each
+    step's friction from device rows, none of its host arrays read): copies 0 and 2 end every step where their
+    separate runs (CPU arch, host friction rows) end, to the solver's tolerance; copy 1, started from a non-finite
+    velocity, fails alone at its first step and keeps its last good state."""
+    import copy
 
+    from sim_core.control import Control
+    from sim_core.energies.friction import device_rows
+    from sim_core.simulation import Simulation
+    from sim_core.solver_config import SolverConfig
+
+    from sim_core.bench.batch import _FormingRun
+
+    steps = 3
+    run = _FormingRun(3, steps, "taichi-cpu", lockstep=True, linear_solver="envelope")
+    model, effector = run.batch.sims[0].model, run.effector
+    separate = []
+    for i in (0, 2):
+        alone = Simulation(copy.deepcopy(model), solver_config=SolverConfig(backend="taichi-cpu"))
+        alone.state = run.batch.states[i].copy()
+        separate.append([alone.step(Control(effector_pose_target={effector: run.targets[i][k]})) and alone.state.copy()
+                         for k in range(steps)])
+    sheet = model.bodies["sheet"].vertices
+    run.batch.sims[1].state.v[sheet[len(sheet) // 2]] = [0.0, 0.0, np.nan]
+    start = run.batch.states[1].copy()
+    built = []
+    original = device_rows.friction_on_device
+    monkeypatch.setattr(device_rows, "friction_on_device", lambda *a: built.append(original(*a)) or built[-1])
     _emulate_cuda(monkeypatch)
-    lockstep_against_separate_runs(monkeypatch)
+    tol = SolverConfig().tol_velocity * 0.005
+    for k in range(steps):
+        res = run.batch.step([Control(effector_pose_target={effector: t[k]}) for t in run.targets])
+        assert res.failed_now == ([1] if k == 0 else [])
+        for i, ref in zip((0, 2), separate):
+            assert np.max(np.abs(run.batch.states[i].x - ref[k].x)) <= tol, (i, k)
+    assert len(built) >= steps and all(f._host is None for f in built)  # (step 0 again without copy 1)
+    assert list(run.batch.active) == [True, False, True] and "non-finite" in run.batch.failures[1]
+    np.testing.assert_array_equal(run.batch.states[1].x, start.x)
