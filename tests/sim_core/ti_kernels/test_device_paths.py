@@ -23,6 +23,7 @@ def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
     import importlib
 
     from sim_core.energies.contact import batch_kernel, setup_kernel
+    from sim_core.energies.friction import device_rows
     from sim_core.energies.friction import kernel as friction_kernel
     from sim_core.ti_backend import ti
 
@@ -48,7 +49,10 @@ def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
             pairs = {"packed_sides", "packed_rows"} | ({"packed_vertices_every"} if offered else set())
             for module, names in ((friction_kernel, own),
                                   (batch_kernel, pairs | {"packed", "d", "region", "gradients", "slots"}),
-                                  (setup_kernel, {"5:_friction_frames_kernel", "6:_codes_kernel"})):
+                                  (setup_kernel, {"6:_codes_kernel"}),
+                                  # the friction's rows built on the device (a single environment's Newton loop then
+                                  # reads them back once and evaluates on the host arrays)
+                                  (device_rows, {"pairs", "vertex_body", "table"})):
                 kept = module._ARRAYS.device()
                 assert names <= set(kept), module.__name__
                 assert all(isinstance(kept[name][1], ti.lang._ndarray.ScalarNdarray) for name in names)
