@@ -62,6 +62,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     from sim_core.energies.contact import batch_kernel as contact_batch
     from sim_core.energies.contact import distance_kernel as contact_distance
     from sim_core.energies.contact import setup_kernel as contact_setup
+    from sim_core.energies.friction import device_rows as friction_rows
     from sim_core.energies.friction import kernel as friction
     from sim_core.energies.hinge_bending import fused_kernel as fused_hinge
     from sim_core.ti_kernels import block_projection, broad_phase, compaction, hash_candidates, sweep_candidates
@@ -75,6 +76,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     hash_candidates.compile_kernels()
     compaction.compile_kernels()
     friction.compile_kernels()
+    friction_rows.compile_kernels()  # the friction rows built on the device (a CUDA step's set-up)
     if projection != "none":
         block_projection.compile_kernels()  # on CUDA: the device projection of a lockstep batch's blocks
     return time.perf_counter() - t0
