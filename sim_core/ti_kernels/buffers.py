@@ -227,8 +227,10 @@ def copy_back(host: np.ndarray, array, rows: int | None = None) -> np.ndarray:
     return host
 
 
-def unheld_rows(kept: dict, name: str, rows: int, tail: tuple[int, ...] = (), spares: int = 6, dtype=None):
-    """A Taichi ndarray ``(capacity, *tail)`` of ``dtype`` (None: float64; one ``dtype`` a ``name``), ``capacity >= rows``, that no one but ``kept`` holds, for a
+def unheld_rows(kept: dict, name: str, rows: int, tail: tuple[int, ...] = (), spares: int = 6, dtype=None,
+                exact: bool = False):
+    """A Taichi ndarray ``(capacity, *tail)`` of ``dtype`` (None: float64; one ``dtype`` a ``name``), ``capacity >= rows``
+    (with ``exact``, ``capacity == rows``: arrays whose kernels read their shape), that no one but ``kept`` holds, for a
     launch whose results stay where it wrote them (:class:`DeviceRows` of an evaluation, read lazily): one of the
     arrays made here before under ``name`` (``kept[name]``, at most ``spares`` of them) to which ``kept`` holds the
     only reference (:func:`sys.getrefcount`: no evaluation's :class:`DeviceRows`, no caller, keeps it), else a new
@@ -247,11 +249,12 @@ def unheld_rows(kept: dict, name: str, rows: int, tail: tuple[int, ...] = (), sp
     short = None
     for i in range(len(arrays)):
         if sys.getrefcount(arrays[i]) == 2:  # the list's reference and getrefcount's argument alone
-            if arrays[i].shape[0] >= rows and tuple(arrays[i].shape[1:]) == tuple(tail):
+            if (arrays[i].shape[0] == rows if exact else arrays[i].shape[0] >= rows) \
+                    and tuple(arrays[i].shape[1:]) == tuple(tail):
                 return arrays[i]
             short = i
-    array = device_copy.new_ndarray(ti.f64 if dtype is None else dtype,
-                                    (_bucket(int(rows) + int(rows) // 4 + 64),) + tuple(tail))
+    capacity = int(rows) if exact else _bucket(int(rows) + int(rows) // 4 + 64)
+    array = device_copy.new_ndarray(ti.f64 if dtype is None else dtype, (capacity,) + tuple(tail))
     if short is not None:
         arrays[short] = array
     elif len(arrays) < spares:

@@ -21,6 +21,7 @@ import numpy as np
 
 from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import device_copy, transfer
+from sim_core.ti_kernels.buffers import unheld_rows
 from sim_core.ti_kernels.launch import element_cells, fast_kernel
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
@@ -422,6 +423,11 @@ class CopySums:
         return (transfer.download(sums) if device_read is None else device_read) + self._host
 
 
+SPARE_VECTORS = 12
+"""The most ``(N, 3)`` arrays a :class:`CopyVectors` keeps to hand out again (:meth:`CopyVectors.new`): a Newton
+iteration holds its iterate, gradient, direction, right-hand side and a few trial points at once."""
+
+
 def new_vectors(vertex_count: int):
     """A zero-filled float64 ndarray ``(vertex_count, 3)`` (at least one row)."""
     return device_copy.new_ndarray(ti.f64, (max(int(vertex_count), 1), 3))
@@ -475,6 +481,7 @@ class CopyVectors:
         self._order = self._indices(order)
         self._start = self._indices(start)
         self._per_copy = device_copy.new_ndarray(ti.f64, (max(B, 1),))
+        self._spares: dict = {}  # (N, 3) arrays handed out by new() again once nothing else holds them
         # (device buffer, the values it holds or None), the one used latest last (_copy_values)
         self._actions = [(device_copy.new_ndarray(ti.i32, (max(B, 1),)), None) for _ in range(ACTION_BUFFERS)]
         self._out = device_copy.new_ndarray(ti.i64, (max(2 * B, 1),))
@@ -495,13 +502,20 @@ class CopyVectors:
             out.from_numpy(host)
         return out
 
-    def new(self):
-        """A zero-filled ``(N, 3)`` ndarray."""
-        return new_vectors(self.vertex_count)
+    def new(self, zero: bool = True):
+        """A ``(N, 3)`` ndarray that nothing else holds, zero-filled (one fill launch) unless ``zero`` is False (the
+        caller writes every entry): one of this object's spares that no iterate, direction or caller holds any more
+        (:func:`~sim_core.ti_kernels.buffers.unheld_rows`, :data:`SPARE_VECTORS` of them), else a new one; so the
+        line search's trial points and the direction's vectors of a Newton iteration allocate no device memory once
+        the first iterations' are dropped."""
+        vectors = unheld_rows(self._spares, "vectors", max(self.vertex_count, 1), (3,), SPARE_VECTORS, exact=True)
+        if zero:
+            vectors.fill(0.0)
+        return vectors
 
     def upload(self, host: np.ndarray):
-        """A new ``(N, 3)`` ndarray holding ``host`` (``(N, 3)`` or ``3 N`` entries)."""
-        return transfer.upload(self.new(), np.reshape(host, (-1, 3)))
+        """A ``(N, 3)`` ndarray (:meth:`new`'s) holding ``host`` (``(N, 3)`` or ``3 N`` entries)."""
+        return transfer.upload(self.new(zero=False), np.reshape(host, (-1, 3)))
 
     def download(self, a, out: np.ndarray | None = None) -> np.ndarray:
         """``a``'s values in ``out`` (C-contiguous float64 ``(N, 3)``; None: a new array that owns its memory)."""
@@ -545,7 +559,7 @@ class CopyVectors:
         """:meth:`moved` with the step sizes already on the device: ``alphas`` a float64 ndarray whose first ``B``
         entries are copy ``i``'s (e.g. the row :data:`~sim_core.ti_kernels.backtrack.ALPHA` of a
         :class:`~sim_core.ti_kernels.backtrack.DeviceBacktrack`'s state): no upload."""
-        out = self.new()
+        out = self.new(zero=False)
         _moved(x, d, alphas, self._vertex_copy, out, self.vertex_count)
         return out
 

@@ -234,3 +234,41 @@ def test_blends_send_their_actions_only_when_they_change(ti_cpu, stacked, monkey
         sent.clear()
         assert_same_sums(vectors.download(vectors.moved(dx, dd, alphas)), runs.moved(x, d, alphas))
         assert sum(s is vectors._per_copy for s in sent) == 1
+
+
+def test_new_vectors_are_spares_no_one_holds_zero_filled(ti_cpu, stacked, monkeypatch):
+    """``new`` hands out an array again only when nothing but the spares holds it, zero-filled (its former values
+    gone), so trial points and directions that are dropped cost no allocation; one that is held keeps its values
+    through further ``new``, ``moved`` and ``upload`` calls; the spares are capped."""
+    from sim_core.ti_kernels import buffers, copy_vectors
+    from sim_core.ti_kernels.copy_vectors import SPARE_VECTORS, CopyVectors
+
+    made = []
+    new_ndarray = buffers.device_copy.new_ndarray
+    monkeypatch.setattr(buffers.device_copy, "new_ndarray", lambda *a: made.append(a) or new_ndarray(*a))
+    vectors = CopyVectors(stacked.index)
+    N = vectors.vertex_count
+    made.clear()  # (the constructor's own arrays)
+    rng = np.random.default_rng(3)
+    a, d = rng.normal(size=(N, 3)), rng.normal(size=(N, 3))
+    held = vectors.upload(a)
+    direction = vectors.upload(d)
+    assert len(made) == 2
+    trial = vectors.moved(held, direction, np.full(4, 0.5))
+    want = a + 0.5 * d
+    np.testing.assert_array_equal(vectors.download(trial), want)
+    del trial  # dropped: its array is handed out again, zeroed
+    again = vectors.new()
+    assert len(made) == 3 and not np.any(vectors.download(again))
+    np.testing.assert_array_equal(vectors.download(held), a)  # held arrays untouched
+    np.testing.assert_array_equal(vectors.download(direction), d)
+    kept = [vectors.new() for _ in range(SPARE_VECTORS + 2)]  # more than the cap: the extras outside the spares
+    assert len({id(k) for k in kept}) == len(kept) and len(vectors._spares["vectors"]) == SPARE_VECTORS
+    assert all(k.shape == (N, 3) for k in kept) and len(made) == 3 + SPARE_VECTORS + 2  # (`again` held too)
+    del kept, again
+    count = len(made)
+    for _ in range(5):  # a Newton iteration's vectors once the first ones are dropped: no allocation
+        x = vectors.upload(a)
+        vectors.moved(x, vectors.new(), np.zeros(4))
+    assert len(made) == count
+    assert copy_vectors.new_vectors(N).shape == (N, 3)
