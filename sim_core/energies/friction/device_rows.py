@@ -21,7 +21,7 @@ import numpy as np
 
 from sim_core.energies.base import positions_key
 from sim_core.energies.contact.setup_kernel import _edge_edge_frame, _point_triangle_frame, _tangent_frame
-from sim_core.energies.friction.kernel import TiLaggedFriction, _f0, _f1_over_x, _f2_x_minus_f1_over_x3
+from sim_core.energies.friction.kernel import TiLaggedFriction, _f0, _f1_over_x, tangent_hessian
 from sim_core.ti_backend import serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import (DeviceHessianBlocks, DeviceRows, LaunchArrays, copy_back, on_device,
@@ -110,9 +110,7 @@ def _evaluate_kernel(x: _F64_2, vertices: _I32_2, rows: _F64_2, count: ti.i32, e
         y = ti.sqrt(u[0] * u[0] + u[1] * u[1])
         c = rows[k, _C]
         energy[0] += c * _f0(y, eps_u)
-        f1x = _f1_over_x(y, eps_u)
-        f2 = _f2_x_minus_f1_over_x3(y, eps_u)
-        scale = c * f1x
+        scale = c * _f1_over_x(y, eps_u)
         tu = ti.Vector.zero(ti.f64, 3)
         for d in ti.static(range(3)):
             tu[d] = (rows[k, _T + 2 * d] * u[0] + rows[k, _T + 2 * d + 1] * u[1]) * scale
@@ -120,17 +118,10 @@ def _evaluate_kernel(x: _F64_2, vertices: _I32_2, rows: _F64_2, count: ti.i32, e
             v = vertices[k, j]
             for d in ti.static(range(3)):
                 gradient[v, d] += rows[k, _W + j] * tu[d]
-        Hu = ti.Matrix.zero(ti.f64, 2, 2)
-        for i, j in ti.static(ti.ndrange(2, 2)):
-            Hu[i, j] = f2 * u[i] * u[j]
-            if ti.static(i == j):
-                Hu[i, j] += f1x
-        H3 = ti.Matrix.zero(ti.f64, 3, 3)
-        for d, e in ti.static(ti.ndrange(3, 3)):
-            acc = 0.0
-            for i, j in ti.static(ti.ndrange(2, 2)):
-                acc += rows[k, _T + 2 * d + i] * Hu[i, j] * rows[k, _T + 2 * e + j]
-            H3[d, e] = acc * c
+        basis = ti.Matrix.zero(ti.f64, 3, 2)
+        for d, i in ti.static(ti.ndrange(3, 2)):
+            basis[d, i] = rows[k, _T + 2 * d + i]
+        H3 = tangent_hessian(u, basis, c, eps_u)
         for a in range(4):
             for b in range(4):
                 wab = rows[k, _W + a] * rows[k, _W + b]

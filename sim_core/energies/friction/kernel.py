@@ -108,6 +108,16 @@ def _pair_tangent_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.
     """``c_k T_k [(f1/y) I + ((f1' y - f1) / y^3) u u^T] T_k^T`` (3x3, N/m) of pair ``k``: its block ``(a, b)`` is
     ``w_ka w_kb`` times it."""
     u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+    basis = ti.Matrix.zero(ti.f64, 3, 2)
+    for d, i in ti.static(ti.ndrange(3, 2)):
+        basis[d, i] = tangent[k, d, i]
+    return tangent_hessian(u, basis, coefficient[k], eps_u)
+
+
+@ti.func
+def tangent_hessian(u, basis, c, eps_u):
+    """``c T [(f1/y) I + ((f1' y - f1) / y^3) u u^T] T^T`` (3x3, N/m) of a pair's tangential displacement ``u``
+    (2-vector, m, ``y = |u|``), tangent basis ``basis`` (3x2 matrix) and coefficient ``c = mu lam`` (N)."""
     y = ti.sqrt(u[0] * u[0] + u[1] * u[1])
     f1x = _f1_over_x(y, eps_u)
     f2 = _f2_x_minus_f1_over_x3(y, eps_u)
@@ -120,8 +130,8 @@ def _pair_tangent_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.
     for d, e in ti.static(ti.ndrange(3, 3)):
         acc = 0.0
         for i, j in ti.static(ti.ndrange(2, 2)):
-            acc += tangent[k, d, i] * Hu[i, j] * tangent[k, e, j]
-        H3[d, e] = acc * coefficient[k]
+            acc += basis[d, i] * Hu[i, j] * basis[e, j]
+        H3[d, e] = acc * c
     return H3
 
 
