@@ -164,6 +164,12 @@ class DeviceLaggedFriction(TiLaggedFriction):
         self.eps_v, self.dt = float(eps_v), float(dt)
         self.eps_u = self.eps_v * self.dt
 
+    def __getstate__(self) -> dict:
+        """A pickle or copy holds the host arrays (read back here if they were not yet), not the device rows."""
+        state = dict(self.__dict__)
+        state["_host"], state["_device_arrays"] = self._host_values(), None
+        return state
+
     def _host_values(self) -> dict:
         """The rows' host arrays, copied back once (the device path ends here)."""
         if self._host is None:

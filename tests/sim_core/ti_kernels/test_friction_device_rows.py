@@ -6,6 +6,8 @@ stepped in lockstep through that path gives each copy its separate run's states.
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 
@@ -51,6 +53,11 @@ def test_rows_built_on_the_device_equal_the_host_set_up(ti_cpu):
     body pair as the host computes them, read back in one copy at the first ask (none before)."""
     friction, ref, _ = _rows_and_reference(3)
     assert friction._host is None  # nothing read back by the set-up
+    twin = pickle.loads(pickle.dumps(friction))  # a pickle holds the host arrays, read back for it
+    assert twin._device_arrays is None
+    np.testing.assert_array_equal(twin.tangent, ref.tangent)
+    x = ref.x_prev + 1e-4
+    np.testing.assert_allclose(twin.gradient(x), ref.gradient(x), rtol=0, atol=1e-12 * np.max(np.abs(ref.gradient(x))))
     for name in ("weights", "tangent", "lam", "mu"):
         np.testing.assert_array_equal(getattr(friction, name), getattr(ref, name), err_msg=name)
     np.testing.assert_array_equal(friction.vertices, ref.vertices)
