@@ -145,6 +145,10 @@ class ContactSet:
         self._covered = None  # (x at the search, x, covers' answer) of the last covers() of two frozen arrays
         self._pool = ArrayPool()  # the lists' vertex arrays, reused once no list, potential or cache holds them
         self.min_edge_sine = 0.1
+        # the step sides by one launch whose sides the pair batch reads where it wrote them (_device_pair_sides):
+        # True / False, or None: on CUDA
+        self.device_sides: bool | None = None
+        self._sides_device = None  # (the host sides' array, its device copy or None) of the last _device_pair_sides
         # searches look ahead along the step's motion (see _search_position)
         self.lookahead = 0.5
         self.lookahead_cap = 0.25
@@ -562,13 +566,48 @@ class ContactSet:
         same configuration, so they are left out (``keep`` False, side 0; decided at x^n, so the set
         is fixed within the step). ``ee sides``: the step sides of the kept pairs.
         """
-        geo = self._candidate_geometry(x_ref, vt, ee)
         vt_keys, ee_keys = self._list_vertices(vt, ee).keys()
         block = np.empty(len(vt) + len(ee))  # both kinds' sides in one array: the pair batch's (_search)
+        if self._sides_on_device() and (vt_keys is not None or not len(vt)) and (ee_keys is not None or not len(ee)):
+            return self._device_pair_sides(x_ref, memory, vt, ee, block)
+        self._sides_device = None
+        geo = self._candidate_geometry(x_ref, vt, ee)
         vt_sides = step_sides(geo.vt_above, vt, geo.vt_side, memory.vertex_triangle, vt_keys, block[:len(vt)])
         keep = geo.ee_keep
         ee_sides = step_sides(keep & geo.ee_interior, ee, geo.ee_side, memory.edge_edge, ee_keys, block[len(vt):])
         return vt_sides, keep, ee_sides
+
+    def _sides_on_device(self) -> bool:
+        """Whether :meth:`_pair_sides` takes the step sides from :func:`~sim_core.energies.contact.sides_kernel.
+        step_sides_on_device` (:attr:`device_sides`; None: on CUDA)."""
+        if not self.taichi:
+            return False
+        if self.device_sides is not None:
+            return bool(self.device_sides)
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
+        from sim_core.ti_backend import current_arch
+
+        return current_arch() == "cuda"
+
+    def _device_pair_sides(self, x_ref: np.ndarray, memory: CollisionMemory, vt: np.ndarray, ee: np.ndarray,
+                           block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_pair_sides` by one launch over the lists' kept int32 vertices (:func:`~sim_core.energies.contact.
+        sides_kernel.step_sides_on_device`; the lists' keys known, ``block`` ``(p + q,)`` the sides' array), the
+        memory's pairs placed among the lists' keys on the host (a search a remembered pair); the launch's device
+        sides kept for the pair batch (:attr:`_sides_device`)."""
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
+        from sim_core.energies.contact.sides_kernel import step_sides_on_device
+
+        lists = self._list_vertices(vt, ee)
+        p = len(vt)
+        found = [memory_of.found_in(keys) if keys is not None else (np.zeros(0, np.int64), np.zeros(0))
+                 for memory_of, keys in zip((memory.vertex_triangle, memory.edge_edge), lists.keys())]
+        rows = np.concatenate([found[0][0], found[1][0] + p])
+        got = step_sides_on_device(x_ref, *lists.int32_vertices(), self.min_edge_sine, lists.device,
+                                   (rows, np.concatenate([found[0][1], found[1][1]])), block,
+                                   self._held_positions(x_ref))
+        self._sides_device = (block, got.device)
+        return block[:p], got.ee_keep, block[p:]
 
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
         """Potentials over ``candidates`` with the step's sides (:meth:`_pair_sides`, of every pair in one geometry
@@ -599,7 +638,9 @@ class ContactSet:
             # one launch evaluates both at each new x; its sides by layout row are both lists' (0 where a pair is left
             # out), the one array of _pair_sides unless a release copied a part
             whole = vt_sides.base if vt_sides.base is not None and vt_sides.base is ee_sides.base else None
-            PairBatch(*pots, layout=lists.batch_layout(ee_rows), sides=whole)
+            kept = getattr(self, "_sides_device", None)  # the same sides where the sides' launch wrote them
+            device = kept[1] if kept is not None and whole is not None and kept[0] is whole else None
+            PairBatch(*pots, layout=lists.batch_layout(ee_rows), sides=whole, device_sides=device)
         return pots, ee_rows
 
     def _list_vertices(self, vt: np.ndarray, ee: np.ndarray) -> CandidateVertices:
