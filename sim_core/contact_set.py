@@ -82,6 +82,11 @@ class ContactSet:
         ConfigError: an unknown ``broad_phase`` or ``backend``.
     """
 
+    device_sides: bool | None = None
+    """On a Taichi backend, the step sides of new candidate lists made by one launch whose sides the pair batch reads
+    where it wrote them, and the end of a step measuring only its active pairs (:meth:`_device_pair_sides`), instead of
+    the candidates' geometry codes copied back and decided on the host; None: on CUDA. The same sides."""
+
     def __init__(self, model: Model, broad_phase: str | None = None, backend: str = "numpy",
                  workspace: Workspace | None = None) -> None:
         self.model = model
@@ -145,9 +150,6 @@ class ContactSet:
         self._covered = None  # (x at the search, x, covers' answer) of the last covers() of two frozen arrays
         self._pool = ArrayPool()  # the lists' vertex arrays, reused once no list, potential or cache holds them
         self.min_edge_sine = 0.1
-        # the step sides by one launch whose sides the pair batch reads where it wrote them (_device_pair_sides):
-        # True / False, or None: on CUDA
-        self.device_sides: bool | None = None
         self._sides_device = None  # (the host sides' array, its device copy or None) of the last _device_pair_sides
         # searches look ahead along the step's motion (see _search_position)
         self.lookahead = 0.5
@@ -539,7 +541,12 @@ class ContactSet:
         one measurement of every candidate pair at ``x``, which is kept for the next step's sides at its ``x^n``
         (:meth:`_candidate_geometry`): one launch per step in place of two. The potentials' rows are the
         candidates' rows (the edge-edge ones through the rows :meth:`_search` kept) when they were made from
-        the candidate lists themselves (no held pair left out), else the pairs are looked up in the lists."""
+        the candidate lists themselves (no held pair left out), else the pairs are looked up in the lists. Where the
+        next step's sides come from their own launch (:meth:`_sides_on_device`), only the active pairs are
+        measured (:meth:`_pair_geometry` of their vertices)."""
+        if self._sides_on_device():
+            return self._pair_geometry(x, np.take(vt.vertices, vt_active, axis=0),
+                                       np.take(ee.vertices, ee_active, axis=0))
         _, vt_list, ee_list = self._candidates  # the lists of the potentials evaluated at x
         lists = self._list_vertices(vt_list, ee_list)
         geo = self._list_geometry(x, lists)
@@ -578,8 +585,8 @@ class ContactSet:
         return vt_sides, keep, ee_sides
 
     def _sides_on_device(self) -> bool:
-        """Whether :meth:`_pair_sides` takes the step sides from :func:`~sim_core.energies.contact.sides_kernel.
-        step_sides_on_device` (:attr:`device_sides`; None: on CUDA)."""
+        """Whether :meth:`_pair_sides` takes the step sides from
+        :func:`~sim_core.energies.contact.sides_kernel.step_sides_on_device` (:attr:`device_sides`)."""
         if not self.taichi:
             return False
         if self.device_sides is not None:

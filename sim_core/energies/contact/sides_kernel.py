@@ -38,8 +38,8 @@ _KEEP, _ABOVE = 3, 6
 near-parallel, 1 for every vertex-triangle pair; ``above``: the pair's side is the remembered / geometric one, above
 its face or with interior closest points, and kept)."""
 
-_SIDE_OF_CODE = np.array([(c % 3) - 1.0 for c in range(9)])
-"""The step side of each int8 code, float64 ``(9,)``."""
+_SIDE_OF_CODE = np.array([(c % 3) - 1.0 for c in range(12)])
+"""The step side of each int8 code, float64 ``(12,)``."""
 
 
 @ti.func

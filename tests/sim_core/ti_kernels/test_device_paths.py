@@ -12,7 +12,8 @@ from tests.sim_core.ti_kernels.conftest import TEST_ARCH
 from tests.sim_core.ti_kernels.test_fused_elastic import _forming_steps
 
 _CALLERS = ("sim_core.ti_backend", "sim_core.energies.friction.kernel", "sim_core.energies.contact.batch_kernel",
-            "sim_core.energies.contact.setup_kernel", "sim_core.ti_kernels.hash_grid")
+            "sim_core.energies.contact.setup_kernel", "sim_core.energies.contact.sides_kernel",
+            "sim_core.ti_kernels.hash_grid")
 
 
 @pytest.mark.skipif(TEST_ARCH != "cpu", reason=(
@@ -48,7 +49,7 @@ def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
             pairs = {"packed_sides", "packed_rows"} | ({"packed_vertices_every"} if offered else set())
             for module, names in ((friction_kernel, own),
                                   (batch_kernel, pairs | {"packed", "d", "region", "gradients", "slots"}),
-                                  (setup_kernel, {"5:_friction_frames_kernel", "6:_codes_kernel"})):
+                                  (setup_kernel, {"5:_friction_frames_kernel", "10:_sides_kernel"})):
                 kept = module._ARRAYS.device()
                 assert names <= set(kept), module.__name__
                 assert all(isinstance(kept[name][1], ti.lang._ndarray.ScalarNdarray) for name in names)
