@@ -50,12 +50,12 @@ def _coded(side: ti.i32, keep: ti.i32, above: ti.i32) -> ti.i8:
 
 @fast_kernel
 def _sides_kernel(x: _F64_2, vt: _I32_2, vt_count: ti.i32, ee: _I32_2, ee_count: ti.i32, min_sine: ti.f64,
-                  found: _I32_1, found_sides: _F64_1, found_count: ti.i32, sides: _F64_1, codes: _I8_1):
+                  found: _I32_1, found_count: ti.i32, sides: _F64_1, codes: _I8_1):
     """Rows ``k < vt_count`` of ``vt`` and ``k < ee_count`` of ``ee`` (int32 ``[p, a, b, c]`` / ``[a0, a1, b0, b1]``):
     their step sides into ``sides[:vt_count + ee_count]`` (the vertex-triangle pairs, then the edge-edge ones) and
-    their codes (:data:`_KEEP`) into ``codes``; then the remembered sides ``found_sides[:found_count]`` (+1 / -1) of the
-    rows ``found`` (of the same ``vt_count + ee_count`` rows) placed where the row is above (the geometric side
-    stays elsewhere). The regions and sides are :func:`~sim_core.energies.contact.setup_kernel._codes_kernel`'s."""
+    their codes (:data:`_KEEP`) into ``codes``; then the remembered sides of the memory's rows ``found[:found_count]``
+    (``2 row + 1`` for a side +1, ``2 row`` for -1; rows of the same ``vt_count + ee_count``) placed where the row is
+    above (the geometric side stays elsewhere). The regions and sides are :func:`~sim_core.energies.contact.setup_kernel._codes_kernel`'s."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vt_count):
         code = ti.cast(_vertex_triangle_code(x, vt, k), ti.i32)
@@ -75,11 +75,11 @@ def _sides_kernel(x: _F64_2, vt: _I32_2, vt_count: ti.i32, ee: _I32_2, ee_count:
         codes[vt_count + k] = _coded(side, keep, above)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for f in range(found_count):
-        row = found[f]
+        row = found[f] // 2
         code = ti.cast(codes[row], ti.i32)
         if code >= _ABOVE:  # above: the remembered side (+1 / -1)
-            side = ti.cast(found_sides[f], ti.i32)
-            sides[row] = found_sides[f]
+            side = 2 * (found[f] % 2) - 1
+            sides[row] = ti.cast(side, ti.f64)
             codes[row] = ti.cast(code - (code % 3) + side + 1, ti.i8)
 
 
@@ -100,7 +100,7 @@ class DeviceSides(NamedTuple):
 
 
 _ARRAYS = LaunchArrays()
-"""The launch's host arrays (the found rows and sides copied in, the codes copied out) and its device sides."""
+"""The launch's host arrays (the found rows with their sides copied in, the codes copied out) and its device sides."""
 
 
 def step_sides_on_device(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray, min_sine: float,
@@ -132,6 +132,8 @@ def step_sides_on_device(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np
     rows, remembered = np.asarray(found[0]), np.asarray(found[1], dtype=np.float64)
     if len(rows) and (rows.min() < 0 or rows.max() >= p + q):
         raise ValueError(f"step_sides_on_device: a remembered row outside [0, {p + q})")
+    if p + q >= 1 << 30:
+        raise ValueError(f"step_sides_on_device: {p + q} pairs, at most 2^30 - 1 (a row and its side in an int32)")
     sides = np.empty(p + q) if out is None else out
     codes_host = _ARRAYS.rows("codes", p + q, (), np.int8)
     if not p + q:
@@ -147,14 +149,13 @@ def step_sides_on_device(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np
         else:
             indices.append(_kept_indices(f"sides_{name}", given))
     f = len(rows)
-    found_rows = _ARRAYS.rows("found", f, (), np.int32)
-    found_rows[:f] = rows
-    found_sides = _ARRAYS.rows("found_sides", f)
-    found_sides[:f] = remembered
+    found_rows = _ARRAYS.rows("found", f, (), np.int32)  # 2 row + (side > 0): one array sent
+    np.multiply(rows, 2, out=found_rows[:f], casting="unsafe")
+    found_rows[:f] += remembered > 0.0
     on_gpu = current_arch() == "cuda"
     target = unheld_rows(_ARRAYS.spares(), "sides", p + q) if on_gpu else sides
     _device_launch(_sides_kernel, (_positions_or_held(x, x_device), indices[0], p, indices[1], q, float(min_sine),
-                                   found_rows, found_sides, f, target, codes_host), outputs={10: p + q},
+                                   found_rows, f, target, codes_host), outputs={9: p + q},
                    constant=constant)
     codes = codes_host[:p + q]
     if on_gpu:
