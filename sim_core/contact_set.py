@@ -83,9 +83,10 @@ class ContactSet:
     """
 
     device_sides: bool | None = None
-    """On a Taichi backend, the step sides of new candidate lists made by one launch whose sides the pair batch reads
-    where it wrote them, and the end of a step measuring only its active pairs (:meth:`_device_pair_sides`), instead of
-    the candidates' geometry codes copied back and decided on the host; None: on CUDA. The same sides."""
+    """On a Taichi backend, the candidate lists' geometry as one int8 code a pair kept where it was measured
+    (:func:`~sim_core.energies.contact.sides_kernel.side_codes`) and the step sides placed from it by a launch whose
+    sides the pair batch reads where they are (:meth:`_device_pair_sides`), instead of int32 codes decoded on the host
+    and the sides sent with every new batch; None: on CUDA. The same sides."""
 
     def __init__(self, model: Model, broad_phase: str | None = None, backend: str = "numpy",
                  workspace: Workspace | None = None) -> None:
@@ -498,14 +499,21 @@ class ContactSet:
             return kept.vt_vertices, kept.ee_vertices
         return vertex_triangle_vertices(vt, self.triangles), edge_edge_vertices(ee, self.edges)
 
-    def _list_geometry(self, x: np.ndarray, lists: CandidateVertices) -> ListGeometry:
+    def _list_geometry(self, x: np.ndarray, lists: CandidateVertices):
         """The :class:`ListGeometry` of candidate lists ``lists`` at ``x`` ``(n, 3)`` (edge-edge pairs kept above
         :attr:`min_edge_sine`): on a Taichi backend one launch over the lists' kept int32 indices that copies back
-        one int32 code a pair (:func:`sim_core.energies.contact.setup_kernel.pair_codes`), else from
-        :meth:`_pair_geometry`; on CUDA the launch reads ``x`` where the solver's terms hold it on the device
-        (:meth:`_held_positions`), if they do."""
+        one int32 code a pair (:func:`sim_core.energies.contact.setup_kernel.pair_codes`), or with
+        :attr:`device_sides` their :class:`~sim_core.energies.contact.sides_kernel.SideCodes` (one int8 code a pair,
+        kept on the device too: its ``rows`` give a :class:`ListGeometry`), else from :meth:`_pair_geometry`; on
+        CUDA the launch reads ``x`` where the solver's terms hold it on the device (:meth:`_held_positions`), if they
+        do."""
         if not self.taichi:
             return ListGeometry.of(self._pair_geometry(x, lists.vt_vertices, lists.ee_vertices), self.min_edge_sine)
+        if self._sides_on_device():
+            # optional heavy dependency: Taichi, loaded on a Taichi backend only
+            from sim_core.energies.contact.sides_kernel import side_codes
+
+            return side_codes(x, *lists.int32_vertices(), self.min_edge_sine, lists.device, self._held_positions(x))
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.energies.contact.setup_kernel import pair_codes
 
@@ -523,7 +531,7 @@ class ContactSet:
 
         return positions_on_device(self.workspace, x)
 
-    def _candidate_geometry(self, x: np.ndarray, vt: np.ndarray, ee: np.ndarray) -> ListGeometry:
+    def _candidate_geometry(self, x: np.ndarray, vt: np.ndarray, ee: np.ndarray):
         """:meth:`_list_geometry` of the candidate lists ``vt`` ``(p, 2)`` and ``ee`` ``(q, 2)`` at ``x`` ``(n, 3)``;
         the geometry :meth:`end_step` measured of the same candidate lists (the same arrays) at equal positions is
         taken as it is: the converged positions of a step are the next one's ``x^n``, and a step starts with the
@@ -541,12 +549,7 @@ class ContactSet:
         one measurement of every candidate pair at ``x``, which is kept for the next step's sides at its ``x^n``
         (:meth:`_candidate_geometry`): one launch per step in place of two. The potentials' rows are the
         candidates' rows (the edge-edge ones through the rows :meth:`_search` kept) when they were made from
-        the candidate lists themselves (no held pair left out), else the pairs are looked up in the lists. Where the
-        next step's sides come from their own launch (:meth:`_sides_on_device`), only the active pairs are
-        measured (:meth:`_pair_geometry` of their vertices)."""
-        if self._sides_on_device():
-            return self._pair_geometry(x, np.take(vt.vertices, vt_active, axis=0),
-                                       np.take(ee.vertices, ee_active, axis=0))
+        the candidate lists themselves (no held pair left out), else the pairs are looked up in the lists."""
         _, vt_list, ee_list = self._candidates  # the lists of the potentials evaluated at x
         lists = self._list_vertices(vt_list, ee_list)
         geo = self._list_geometry(x, lists)
@@ -573,20 +576,22 @@ class ContactSet:
         same configuration, so they are left out (``keep`` False, side 0; decided at x^n, so the set
         is fixed within the step). ``ee sides``: the step sides of the kept pairs.
         """
+        geo = self._candidate_geometry(x_ref, vt, ee)
         vt_keys, ee_keys = self._list_vertices(vt, ee).keys()
         block = np.empty(len(vt) + len(ee))  # both kinds' sides in one array: the pair batch's (_search)
-        if self._sides_on_device() and (vt_keys is not None or not len(vt)) and (ee_keys is not None or not len(ee)):
-            return self._device_pair_sides(x_ref, memory, vt, ee, block)
         self._sides_device = None
-        geo = self._candidate_geometry(x_ref, vt, ee)
+        if not isinstance(geo, ListGeometry):  # the codes of the device path (_list_geometry)
+            if (vt_keys is not None or not len(vt)) and (ee_keys is not None or not len(ee)):
+                return self._device_pair_sides(geo, memory, (vt_keys, ee_keys), block)
+            geo = geo.geometry()
         vt_sides = step_sides(geo.vt_above, vt, geo.vt_side, memory.vertex_triangle, vt_keys, block[:len(vt)])
         keep = geo.ee_keep
         ee_sides = step_sides(keep & geo.ee_interior, ee, geo.ee_side, memory.edge_edge, ee_keys, block[len(vt):])
         return vt_sides, keep, ee_sides
 
     def _sides_on_device(self) -> bool:
-        """Whether :meth:`_pair_sides` takes the step sides from
-        :func:`~sim_core.energies.contact.sides_kernel.step_sides_on_device` (:attr:`device_sides`)."""
+        """Whether the lists' geometry is their :class:`~sim_core.energies.contact.sides_kernel.SideCodes` and the step
+        sides are placed from them (:meth:`_list_geometry`, :meth:`_device_pair_sides`; :attr:`device_sides`)."""
         if not self.taichi:
             return False
         if self.device_sides is not None:
@@ -596,23 +601,20 @@ class ContactSet:
 
         return current_arch() == "cuda"
 
-    def _device_pair_sides(self, x_ref: np.ndarray, memory: CollisionMemory, vt: np.ndarray, ee: np.ndarray,
-                           block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`_pair_sides` by one launch over the lists' kept int32 vertices (:func:`~sim_core.energies.contact.
-        sides_kernel.step_sides_on_device`; the lists' keys known, ``block`` ``(p + q,)`` the sides' array), the
-        memory's pairs placed among the lists' keys on the host (a search a remembered pair); the launch's device
-        sides kept for the pair batch (:attr:`_sides_device`)."""
+    def _device_pair_sides(self, codes, memory: CollisionMemory, keys: tuple, block: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_pair_sides` from the lists' :class:`~sim_core.energies.contact.sides_kernel.SideCodes` at ``x^n``
+        (:func:`~sim_core.energies.contact.sides_kernel.step_sides_of`) with the memory's pairs placed among the lists'
+        sorted ``keys`` (a search a remembered pair; ``block`` ``(p + q,)`` the sides' array); on CUDA the sides'
+        device copy is kept for the pair batch (:attr:`_sides_device`)."""
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
-        from sim_core.energies.contact.sides_kernel import step_sides_on_device
+        from sim_core.energies.contact.sides_kernel import step_sides_of
 
-        lists = self._list_vertices(vt, ee)
-        p = len(vt)
-        found = [memory_of.found_in(keys) if keys is not None else (np.zeros(0, np.int64), np.zeros(0))
-                 for memory_of, keys in zip((memory.vertex_triangle, memory.edge_edge), lists.keys())]
-        rows = np.concatenate([found[0][0], found[1][0] + p])
-        got = step_sides_on_device(x_ref, *lists.int32_vertices(), self.min_edge_sine, lists.device,
-                                   (rows, np.concatenate([found[0][1], found[1][1]])), block,
-                                   self._held_positions(x_ref))
+        p = codes.split
+        found = [memory_of.found_in(k) if k is not None else (np.zeros(0, np.int64), np.zeros(0))
+                 for memory_of, k in zip((memory.vertex_triangle, memory.edge_edge), keys)]
+        got = step_sides_of(codes, (np.concatenate([found[0][0], found[1][0] + p]),
+                                    np.concatenate([found[0][1], found[1][1]])), block)
         self._sides_device = (block, got.device)
         return block[:p], got.ee_keep, block[p:]
 

@@ -223,7 +223,7 @@ class PairBatch:
             made here from the potentials' sides.
         device_sides: with ``sides``, the same values where a CUDA launch reads them (a float64 Taichi ndarray of at
             least ``len(local)`` rows, never written while the batch holds it: the contact set's step sides' launch,
-            :func:`~sim_core.energies.contact.sides_kernel.step_sides_on_device`), taken instead of a copy of
+            :func:`~sim_core.energies.contact.sides_kernel.step_sides_of`), taken instead of a copy of
             ``sides`` sent once; None: ``sides`` sent.
 
     Pairs and sides are fixed at construction (as the potentials' are); each potential's own ``eps``

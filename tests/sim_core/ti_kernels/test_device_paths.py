@@ -49,7 +49,7 @@ def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
             pairs = {"packed_sides", "packed_rows"} | ({"packed_vertices_every"} if offered else set())
             for module, names in ((friction_kernel, own),
                                   (batch_kernel, pairs | {"packed", "d", "region", "gradients", "slots"}),
-                                  (setup_kernel, {"5:_friction_frames_kernel", "9:_sides_kernel"})):
+                                  (setup_kernel, {"5:_friction_frames_kernel", "2:_place_kernel"})):
                 kept = module._ARRAYS.device()
                 assert names <= set(kept), module.__name__
                 assert all(isinstance(kept[name][1], ti.lang._ndarray.ScalarNdarray) for name in names)

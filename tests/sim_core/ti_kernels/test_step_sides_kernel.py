@@ -1,5 +1,5 @@
-"""The step sides of candidate lists made in one launch (sim_core/energies/contact/sides_kernel.py) equal the host's
-(the geometry codes copied back, decoded and placed by ``step_sides``) bit for bit, on random pairs with a side memory
+"""The step sides of candidate lists from their int8 codes (sim_core/energies/contact/sides_kernel.py) equal the host's
+(the int32 geometry codes copied back, decoded and placed by ``step_sides``) bit for bit, on random pairs with a side memory
 and on Forming's contact set through steps and a trial point's new lists; the pair batch reading the launch's sides where
 it wrote them evaluates as over the host's; the CUDA launch path emulated on the CPU arch (the arch query answering
 "cuda")."""
@@ -48,12 +48,12 @@ def _host_sides(x, vt, ee, pairs, keys, memories, min_sine):
 
 @pytest.mark.skipif(TEST_ARCH != "cpu", reason="emulates the CUDA launch path on the CPU arch")
 @pytest.mark.parametrize("emulated", [False, True])
-def test_the_launchs_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, monkeypatch, emulated):
+def test_the_codes_and_placed_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, monkeypatch, emulated):
     """Random pairs of every region, a memory holding pairs above (its side kept, against the geometric one for
     some) and beside their face (its side not taken), the near-parallel threshold at several values and an empty
-    kind: the sides and ``keep`` of one launch equal the host path's exactly; on CUDA (emulated) the device sides
-    hold the same values in their first rows."""
-    from sim_core.energies.contact.sides_kernel import step_sides_on_device
+    kind: the int8 codes' geometry (every row and chosen rows) equals ``pair_codes``' and the placed sides and ``keep``
+    equal the host path's exactly; on CUDA (emulated) the device codes and sides hold the same values."""
+    from sim_core.energies.contact.sides_kernel import side_codes, step_sides_of
 
     if emulated:
         _emulate_cuda(monkeypatch)
@@ -72,17 +72,23 @@ def test_the_launchs_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, monkeypatch,
             lists = (np.ascontiguousarray(vt[p_rows]), np.ascontiguousarray(ee[q_rows]))
             pairs, keys = (vt_pairs[p_rows], ee_pairs[q_rows]), (vt_keys[p_rows], ee_keys[q_rows])
             want, keep, geo = _host_sides(x, *lists, pairs, keys, memories, min_sine)
+            codes = side_codes(x, *lists, min_sine, cache if p_rows == q_rows else {})
+            for name, got in zip(geo._fields, codes.geometry()):
+                np.testing.assert_array_equal(got, getattr(geo, name), err_msg=name)
+                assert got.dtype == getattr(geo, name).dtype, name
+            some = (rng.permutation(len(lists[0]))[:40], rng.permutation(len(lists[1]))[:40])
+            for got, want_rows in zip(codes.rows(*some), geo.rows(*some)):
+                np.testing.assert_array_equal(got, want_rows)
             found = [m.found_in(k) for m, k in zip(memories, keys)]
-            got = step_sides_on_device(x, *lists, min_sine, cache if p_rows == q_rows else {},
-                                       (np.concatenate([found[0][0], found[1][0] + len(lists[0])]),
-                                        np.concatenate([found[0][1], found[1][1]])))
-            np.testing.assert_array_equal(got.sides, want)
-            np.testing.assert_array_equal(got.ee_keep, keep)
-            assert got.ee_keep.dtype == bool
-            if emulated:
-                np.testing.assert_array_equal(got.device.to_numpy()[:len(want)], want)
+            placed = step_sides_of(codes, (np.concatenate([found[0][0], found[1][0] + len(lists[0])]),
+                                           np.concatenate([found[0][1], found[1][1]])))
+            np.testing.assert_array_equal(placed.sides, want)
+            np.testing.assert_array_equal(placed.ee_keep, keep)
+            if emulated and len(want):
+                np.testing.assert_array_equal(codes.device.to_numpy(), codes.codes)
+                np.testing.assert_array_equal(placed.device.to_numpy()[:len(want)], want)
             else:
-                assert got.device is None
+                assert codes.device is None and placed.device is None
             if p_rows == q_rows == slice(None) and min_sine == 0.1:
                 # every case met: remembered sides kept against the geometric one, and left out beside the face
                 above = geo.vt_above
@@ -91,9 +97,9 @@ def test_the_launchs_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, monkeypatch,
                 assert np.any(~above & remembered) and np.all(want[:len(vt)][~above] == 0.0)
                 assert np.any(want[len(vt):] != 0.0) and np.any(keep) and np.any(~keep)
     with pytest.raises(ValueError, match="remembered row outside"):
-        step_sides_on_device(x, vt, ee, 0.1, cache, (np.array([len(vt) + len(ee)]), np.array([1.0])))
+        step_sides_of(codes, (np.array([len(codes.codes)]), np.array([1.0])))
     with pytest.raises(ValueError, match="C-contiguous int32"):
-        step_sides_on_device(x, vt.astype(np.int64), ee, 0.1, {}, (np.zeros(0, np.int64), np.zeros(0)))
+        side_codes(x, vt.astype(np.int64), ee, 0.1, {})
 
 
 def _forming_run(device_sides: bool, monkeypatch) -> list:
@@ -134,9 +140,9 @@ def _forming_run(device_sides: bool, monkeypatch) -> list:
 @pytest.mark.parametrize("emulated", [False, True])
 def test_forming_contact_set_with_the_launchs_sides_equals_the_hosts(ti_cpu, monkeypatch, emulated):
     """Forming's contact set (pressed, two steps, a new search at a trial point, remembered sides from the first step)
-    with the step sides made by one launch and the end of the step measuring its active pairs only: the same pairs,
-    sides, pair energies, gradients and distances, and the same memory, as with the host's sides, bit for bit; on CUDA
-    (emulated) the pair batch reads the launch's device sides."""
+    with the lists' int8 codes and the sides placed from them (the end of a step's codes serving the next one's start):
+    the same pairs, sides, pair energies, gradients and distances, and the same memory, as with the host's sides, bit
+    for bit; on CUDA (emulated) the pair batch reads the placed device sides."""
     from sim_core.energies.contact.batch_kernel import PairBatch
     from sim_core.energies.contact import sides_kernel
 
@@ -144,13 +150,14 @@ def test_forming_contact_set_with_the_launchs_sides_equals_the_hosts(ti_cpu, mon
     if emulated:
         _emulate_cuda(monkeypatch)
     launches = []
-    kernel = sides_kernel._sides_kernel
-    monkeypatch.setattr(sides_kernel, "_sides_kernel", lambda *a: (launches.append(a), kernel(*a))[1])
+    kernel = sides_kernel._place_kernel
+    monkeypatch.setattr(sides_kernel, "_place_kernel", lambda *a: (launches.append(a), kernel(*a))[1])
     batches = []
     made = PairBatch.__init__
     monkeypatch.setattr(PairBatch, "__init__", lambda self, *a, **k: (batches.append(k), made(self, *a, **k))[1])
     device = _forming_run(True, monkeypatch)
-    assert len(launches) >= 2  # the first step's lists, the trial point's new ones
+    # the sides placed on the device at each step's start and for the trial point's new lists (only there on CUDA)
+    assert len(launches) >= 3 if emulated else not launches
     given = [k.get("device_sides") is not None for k in batches]
     assert all(given) if emulated else not any(given)
     assert len(host) == len(device)
