@@ -9,9 +9,10 @@ sides, and the pair batch then sends the float64 sides to the device again (1.9 
 copies: 7.6 MB back, 15 MB up, and the host's passes over every pair). Here:
 
 * :func:`side_codes`: one launch of :func:`_side_codes_kernel` measures each pair's region and geometric side (the set-up
-  kernel's functions, the same expressions) into one int8 code a pair (:data:`_KEEP`), kept on the device and copied
-  back (1.9 MB); a :class:`SideCodes` gives the :class:`~sim_core.collision.pair_geometry.ListGeometry` of any rows
-  (the end of a step's memory update reads its active pairs' only);
+  kernel's functions, the same expressions) into one int8 code a pair (:data:`_KEEP`) and its step side before the
+  memory (-1, 0, +1, one int8: the host's sides are then one cast, not a decoding), kept on the device and copied back
+  in one piece (3.8 MB); a :class:`SideCodes` gives the :class:`~sim_core.collision.pair_geometry.ListGeometry` of any
+  rows (the end of a step's memory update reads its active pairs' only);
 * :func:`step_sides_of`: the step sides from the codes and the rows the host found for the side memory's pairs among
   the lists' sorted keys (:meth:`~sim_core.collision.memory.ContactMemory.found_in`: one search a remembered pair, no
   pass over the lists): on the host one table lookup and the remembered rows placed; on CUDA also one launch of
@@ -52,8 +53,10 @@ _GEOMETRIC = np.array([(c % 3) - 1.0 for c in range(12)])
 _SIGNED = np.array([c >= _ABOVE and c % _ABOVE >= _KEEP for c in range(12)])
 """Whether a code's pair takes a side in the step (kept and above), bool ``(12,)``."""
 
-_STEP_SIDE = np.where(_SIGNED, _GEOMETRIC, 0.0)
-"""The step side of each code without a remembered side, float64 ``(12,)``."""
+_KEPT = np.zeros(256, dtype=bool)
+_KEPT[:12] = [c % _ABOVE >= _KEEP for c in range(12)]
+"""Whether a code's pair is kept, by the code's byte (``uint8``), bool ``(256,)`` (a lookup by bytes: no index
+conversion)."""
 
 
 @ti.func
@@ -64,32 +67,36 @@ def _signed(code: ti.i32) -> ti.i32:
 
 @fast_kernel
 def _side_codes_kernel(x: _F64_2, vt: _I32_2, vt_count: ti.i32, ee: _I32_2, ee_count: ti.i32, min_sine: ti.f64,
-                  codes: _I8_1):
+                       codes: _I8_1):
     """Rows ``k < vt_count`` of ``vt`` and ``k < ee_count`` of ``ee`` (int32 ``[p, a, b, c]`` / ``[a0, a1, b0, b1]``):
-    their codes (:data:`_KEEP`) into ``codes[:vt_count + ee_count]`` (the vertex-triangle pairs, then the edge-edge
-    ones); the regions, sides and sines are :func:`~sim_core.energies.contact.setup_kernel._codes_kernel`'s."""
+    their codes (:data:`_KEEP`) into ``codes[:n]`` (``n = vt_count + ee_count``: the vertex-triangle pairs, then the
+    edge-edge ones) and their step sides before the memory (the geometric side where kept and above, else 0) into
+    ``codes[n:2 n]``; the regions, sides and sines are :func:`~sim_core.energies.contact.setup_kernel._codes_kernel`'s."""
+    n = vt_count + ee_count
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vt_count):
         code = ti.cast(_vertex_triangle_code(x, vt, k), ti.i32)  # side * (2 if above else 1)
         side = ti.select(code > 0, 1, ti.select(code < 0, -1, 0))
-        codes[k] = ti.cast(side + 1 + _KEEP + _ABOVE * ti.select(ti.abs(code) > 1, 1, 0), ti.i8)
+        coded = side + 1 + _KEEP + _ABOVE * ti.select(ti.abs(code) > 1, 1, 0)
+        codes[k] = ti.cast(coded, ti.i8)
+        codes[n + k] = ti.cast(_signed(coded) * side, ti.i8)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(ee_count):
         m = _edge_edge_measures(x, ee, k)
         side = ti.cast(m[2], ti.i32)
-        keep = ti.select(m[0] > min_sine, 1, 0)
-        codes[vt_count + k] = ti.cast(side + 1 + _KEEP * keep + _ABOVE * ti.cast(m[1], ti.i32), ti.i8)
+        coded = side + 1 + _KEEP * ti.select(m[0] > min_sine, 1, 0) + _ABOVE * ti.cast(m[1], ti.i32)
+        codes[vt_count + k] = ti.cast(coded, ti.i8)
+        codes[n + vt_count + k] = ti.cast(_signed(coded) * side, ti.i8)
 
 
 @fast_kernel
 def _place_kernel(codes: _I8_1, count: ti.i32, found: _I32_1, found_count: ti.i32, sides: _F64_1):
-    """``sides[:count]``: the step sides of the pairs of ``codes`` (:data:`_STEP_SIDE`), then the remembered sides of
-    the memory's rows ``found[:found_count]`` (``2 row + 1`` for a side +1, ``2 row`` for -1) placed where the row takes
-    a side (the geometric one stays elsewhere)."""
+    """``sides[:count]``: the step sides before the memory ``codes[count:2 count]`` (:func:`_side_codes_kernel`), then
+    the remembered sides of the memory's rows ``found[:found_count]`` (``2 row + 1`` for a side +1, ``2 row`` for -1)
+    placed where the row takes a side by its code ``codes[row]`` (the geometric one stays elsewhere)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(count):
-        code = ti.cast(codes[k], ti.i32)
-        sides[k] = ti.cast(_signed(code) * ((code % 3) - 1), ti.f64)
+        sides[k] = ti.cast(codes[count + k], ti.f64)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for f in range(found_count):
         row = found[f] // 2
@@ -99,18 +106,28 @@ def _place_kernel(codes: _I8_1, count: ti.i32, found: _I32_1, found_count: ti.i3
 
 class SideCodes(NamedTuple):
     """The codes (:data:`_KEEP`) of two candidate lists at one set of positions (``split`` vertex-triangle pairs, then
-    the edge-edge ones).
+    the edge-edge ones) and their step sides before the memory.
 
     Attributes:
-        codes: int8 ``(p + q,)``, on the host.
-        device: the same codes where the launch wrote them (on CUDA an int8 Taichi ndarray ``(p + q,)``, its own), or
+        both: int8 ``(2 (p + q),)`` on the host: the codes, then the step sides (-1, 0, +1).
+        device: the same where the launch wrote them (on CUDA an int8 Taichi ndarray ``(2 (p + q),)``, its own), or
             None (the host's array is the launch's).
         split: ``p``.
     """
 
-    codes: np.ndarray
+    both: np.ndarray
     device: object
     split: int
+
+    @property
+    def codes(self) -> np.ndarray:
+        """The codes, int8 ``(p + q,)`` (a view)."""
+        return self.both[:len(self.both) // 2]
+
+    @property
+    def steps(self) -> np.ndarray:
+        """The step sides before the memory, int8 ``(p + q,)`` (a view)."""
+        return self.both[len(self.both) // 2:]
 
     def rows(self, vt_rows: np.ndarray, ee_rows: np.ndarray) -> ListGeometry:
         """The :class:`~sim_core.collision.pair_geometry.ListGeometry` of the vertex-triangle rows ``vt_rows`` ``(a,)``
@@ -163,7 +180,7 @@ def side_codes(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray, 
     """
     require_backend("step sides kernel")
     p, q = len(vt_vertices), len(ee_vertices)
-    codes = np.empty(p + q, dtype=np.int8)
+    codes = np.empty(2 * (p + q), dtype=np.int8)
     if not p + q:
         return SideCodes(codes, None, p)
     indices, constant = [], {}
@@ -176,7 +193,7 @@ def side_codes(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray, 
             constant[position] = (device, name)
         else:
             indices.append(_kept_indices(f"sides_{name}", given))
-    target = device_copy.new_ndarray(ti.i8, (p + q,)) if current_arch() == "cuda" else codes
+    target = device_copy.new_ndarray(ti.i8, (2 * (p + q),)) if current_arch() == "cuda" else codes
     _device_launch(_side_codes_kernel, (_positions_or_held(x, x_device), indices[0], p, indices[1], q, float(min_sine),
                                    target), outputs={}, constant=constant)
     if target is codes:
@@ -206,10 +223,10 @@ def step_sides_of(codes: SideCodes, found: tuple[np.ndarray, np.ndarray], out: n
     if count >= 1 << 30:
         raise ValueError(f"step_sides_of: {count} pairs, at most 2^30 - 1 (a row and its side in an int32)")
     sides = np.empty(count) if out is None else out
-    np.take(_STEP_SIDE, codes.codes, out=sides)
+    sides[...] = codes.steps  # (a cast: the kernel wrote the sides before the memory)
     signed = np.take(_SIGNED, np.take(codes.codes, rows))
     sides[rows[signed]] = remembered[signed]
-    keep = codes.codes[codes.split:] % _ABOVE >= _KEEP
+    keep = np.take(_KEPT, codes.codes[codes.split:].view(np.uint8))
     if codes.device is None:
         return DeviceSides(sides, keep, None)
     f = len(rows)

@@ -85,7 +85,7 @@ def test_the_codes_and_placed_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, mon
             np.testing.assert_array_equal(placed.sides, want)
             np.testing.assert_array_equal(placed.ee_keep, keep)
             if emulated and len(want):
-                np.testing.assert_array_equal(codes.device.to_numpy(), codes.codes)
+                np.testing.assert_array_equal(codes.device.to_numpy(), codes.both)
                 np.testing.assert_array_equal(placed.device.to_numpy()[:len(want)], want)
             else:
                 assert codes.device is None and placed.device is None
