@@ -8,8 +8,8 @@ near-parallel). On the host path a launch copies back one int32 geometry code a 
 sides, and the pair batch then sends the float64 sides to the device again (1.9 million pairs at 1024 stacked Forming
 copies: 7.6 MB back, 15 MB up, and the host's passes over every pair). Here:
 
-* :func:`side_codes`: one launch of :func:`_side_codes_kernel` measures each pair's region and geometric side (the set-up
-  kernel's functions, the same expressions) into one int8 code a pair (:data:`_KEEP`) and its step side before the
+* :func:`side_codes`: one launch of :func:`_side_codes_kernel` measures each pair's region and geometric side (the
+  set-up kernel's functions, the same expressions) into one int8 code a pair (:data:`_KEEP`) and its step side before the
   memory (-1, 0, +1, one int8: the host's sides are then one cast, not a decoding), kept on the device and copied back
   in one piece (3.8 MB); a :class:`SideCodes` gives the :class:`~sim_core.collision.pair_geometry.ListGeometry` of any
   rows (the end of a step's memory update reads its active pairs' only);
@@ -71,7 +71,8 @@ def _side_codes_kernel(x: _F64_2, vt: _I32_2, vt_count: ti.i32, ee: _I32_2, ee_c
     """Rows ``k < vt_count`` of ``vt`` and ``k < ee_count`` of ``ee`` (int32 ``[p, a, b, c]`` / ``[a0, a1, b0, b1]``):
     their codes (:data:`_KEEP`) into ``codes[:n]`` (``n = vt_count + ee_count``: the vertex-triangle pairs, then the
     edge-edge ones) and their step sides before the memory (the geometric side where kept and above, else 0) into
-    ``codes[n:2 n]``; the regions, sides and sines are :func:`~sim_core.energies.contact.setup_kernel._codes_kernel`'s."""
+    ``codes[n:2 n]``; the regions, sides and sines are
+    :func:`~sim_core.energies.contact.setup_kernel._codes_kernel`'s."""
     n = vt_count + ee_count
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vt_count):
@@ -178,7 +179,7 @@ def side_codes(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray, 
         ConfigError: the Taichi backend is not initialised.
         ValueError: indices that are not C-contiguous int32 ``(k, 4)``.
     """
-    require_backend("step sides kernel")
+    require_backend("side_codes")
     p, q = len(vt_vertices), len(ee_vertices)
     codes = np.empty(2 * (p + q), dtype=np.int8)
     if not p + q:
@@ -194,8 +195,8 @@ def side_codes(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray, 
         else:
             indices.append(_kept_indices(f"sides_{name}", given))
     target = device_copy.new_ndarray(ti.i8, (2 * (p + q),)) if current_arch() == "cuda" else codes
-    _device_launch(_side_codes_kernel, (_positions_or_held(x, x_device), indices[0], p, indices[1], q, float(min_sine),
-                                   target), outputs={}, constant=constant)
+    _device_launch(_side_codes_kernel, (_positions_or_held(x, x_device), indices[0], p, indices[1], q,
+                                        float(min_sine), target), outputs={}, constant=constant)
     if target is codes:
         return SideCodes(codes, None, p)
     copy_back(codes, target)

@@ -305,9 +305,9 @@ def test_stacked_controls_move_each_copys_pose_targets_by_its_offset(model):
 @pytest.mark.parametrize("config", [LOCKSTEP_CG, LOCKSTEP_ENVELOPE], ids=["device-cg", "envelope"])
 def test_lockstep_with_the_step_sides_from_device_codes_takes_the_host_sides_steps(model, monkeypatch, config):
     """The candidate lists' step sides from their int8 codes (``ContactSet.device_sides``, the CUDA default) against
-    the host's: with copy 1 blown up, it alone fails and the others take the same Newton iterations and states to round-off
-    (the CPU arch's parallel reductions differ run to run by ~1e-17 m), which equal their separate runs to the solver
-    tolerance."""
+    the host's: with copy 1 blown up, it alone fails and the others take the same Newton iterations and states to
+    round-off (the CPU arch's parallel reductions differ run to run by ~1e-17 m), which equal their separate runs to the
+    solver tolerance."""
     from sim_core.contact_set import ContactSet
     from sim_core.energies.contact import sides_kernel
 

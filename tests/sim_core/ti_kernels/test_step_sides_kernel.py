@@ -1,8 +1,8 @@
-"""The step sides of candidate lists from their int8 codes (sim_core/energies/contact/sides_kernel.py) equal the host's
-(the int32 geometry codes copied back, decoded and placed by ``step_sides``) bit for bit, on random pairs with a side memory
-and on Forming's contact set through steps and a trial point's new lists; the pair batch reading the launch's sides where
-it wrote them evaluates as over the host's; the CUDA launch path emulated on the CPU arch (the arch query answering
-"cuda")."""
+"""The step sides of candidate lists from their int8 codes (sim_core/energies/contact/sides_kernel.py) equal the
+host's (the int32 geometry codes copied back, decoded and placed by ``step_sides``) bit for bit, on random pairs with a
+side memory and on Forming's contact set through steps and a trial point's new lists; the pair batch reading the placed
+sides where they are evaluates as over the host's; the CUDA launch path emulated on the CPU arch (the arch query
+answering "cuda")."""
 
 from __future__ import annotations
 
