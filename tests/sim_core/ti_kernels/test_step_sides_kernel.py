@@ -19,14 +19,26 @@ _QUERIES = ("sim_core.ti_backend", "sim_core.energies.contact.setup_kernel", "si
             "sim_core.energies.contact.copy_energy_kernel", "sim_core.ti_kernels.hash_grid")
 
 
+_KEPT_ARRAYS = ("sim_core.ti_kernels.compaction", "sim_core.energies.contact.sides_kernel",
+                "sim_core.energies.contact.batch_kernel", "sim_core.energies.contact.setup_kernel",
+                "sim_core.energies.friction.kernel")
+
+
 def _emulate_cuda(monkeypatch) -> None:
-    """The arch query of the launches' callers answering "cuda" on the CPU arch (the loops stay serial)."""
+    """The arch query of the launches' callers answering "cuda" on the CPU arch (the loops stay serial), with the
+    launches' per-thread arrays of this test's own (their device copies made here go with it: a later test on the
+    CPU path finds none for the same kept arrays)."""
     import importlib
 
-    for name in _QUERIES:
-        module = importlib.import_module(name)
+    from sim_core.ti_kernels.buffers import LaunchArrays
+
+    modules = [importlib.import_module(name) for name in _QUERIES]  # all imported before any query is changed: a
+    # module imported after would bind the changed query as its own, and keep it after the test
+    for module in modules:
         if hasattr(module, "current_arch"):
             monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    for name in _KEPT_ARRAYS:
+        monkeypatch.setattr(importlib.import_module(name), "_ARRAYS", LaunchArrays())
 
 
 def _keyed(count: int, rng) -> tuple[np.ndarray, np.ndarray]:
