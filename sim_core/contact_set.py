@@ -82,6 +82,12 @@ class ContactSet:
         ConfigError: an unknown ``broad_phase`` or ``backend``.
     """
 
+    device_sides: bool | None = None
+    """On a Taichi backend, the candidate lists' geometry as one int8 code a pair kept where it was measured
+    (:func:`~sim_core.energies.contact.sides_kernel.side_codes`) and the step sides placed from it by a launch whose
+    sides the pair batch reads where they are (:meth:`_device_pair_sides`), instead of int32 codes decoded on the host
+    and the sides sent with every new batch; None: on CUDA. The same sides."""
+
     def __init__(self, model: Model, broad_phase: str | None = None, backend: str = "numpy",
                  workspace: Workspace | None = None) -> None:
         self.model = model
@@ -145,6 +151,7 @@ class ContactSet:
         self._covered = None  # (x at the search, x, covers' answer) of the last covers() of two frozen arrays
         self._pool = ArrayPool()  # the lists' vertex arrays, reused once no list, potential or cache holds them
         self.min_edge_sine = 0.1
+        self._sides_device = None  # (the host sides' array, its device copy or None) of the last _device_pair_sides
         # searches look ahead along the step's motion (see _search_position)
         self.lookahead = 0.5
         self.lookahead_cap = 0.25
@@ -492,14 +499,21 @@ class ContactSet:
             return kept.vt_vertices, kept.ee_vertices
         return vertex_triangle_vertices(vt, self.triangles), edge_edge_vertices(ee, self.edges)
 
-    def _list_geometry(self, x: np.ndarray, lists: CandidateVertices) -> ListGeometry:
+    def _list_geometry(self, x: np.ndarray, lists: CandidateVertices):
         """The :class:`ListGeometry` of candidate lists ``lists`` at ``x`` ``(n, 3)`` (edge-edge pairs kept above
         :attr:`min_edge_sine`): on a Taichi backend one launch over the lists' kept int32 indices that copies back
-        one int32 code a pair (:func:`sim_core.energies.contact.setup_kernel.pair_codes`), else from
-        :meth:`_pair_geometry`; on CUDA the launch reads ``x`` where the solver's terms hold it on the device
-        (:meth:`_held_positions`), if they do."""
+        one int32 code a pair (:func:`sim_core.energies.contact.setup_kernel.pair_codes`), or with
+        :attr:`device_sides` their :class:`~sim_core.energies.contact.sides_kernel.SideCodes` (one int8 code a pair,
+        kept on the device too: its ``rows`` give a :class:`ListGeometry`), else from :meth:`_pair_geometry`; on
+        CUDA the launch reads ``x`` where the solver's terms hold it on the device (:meth:`_held_positions`), if they
+        do."""
         if not self.taichi:
             return ListGeometry.of(self._pair_geometry(x, lists.vt_vertices, lists.ee_vertices), self.min_edge_sine)
+        if self._sides_on_device():
+            # optional heavy dependency: Taichi, loaded on a Taichi backend only
+            from sim_core.energies.contact.sides_kernel import side_codes
+
+            return side_codes(x, *lists.int32_vertices(), self.min_edge_sine, lists.device, self._held_positions(x))
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.energies.contact.setup_kernel import pair_codes
 
@@ -517,7 +531,7 @@ class ContactSet:
 
         return positions_on_device(self.workspace, x)
 
-    def _candidate_geometry(self, x: np.ndarray, vt: np.ndarray, ee: np.ndarray) -> ListGeometry:
+    def _candidate_geometry(self, x: np.ndarray, vt: np.ndarray, ee: np.ndarray):
         """:meth:`_list_geometry` of the candidate lists ``vt`` ``(p, 2)`` and ``ee`` ``(q, 2)`` at ``x`` ``(n, 3)``;
         the geometry :meth:`end_step` measured of the same candidate lists (the same arrays) at equal positions is
         taken as it is: the converged positions of a step are the next one's ``x^n``, and a step starts with the
@@ -565,10 +579,44 @@ class ContactSet:
         geo = self._candidate_geometry(x_ref, vt, ee)
         vt_keys, ee_keys = self._list_vertices(vt, ee).keys()
         block = np.empty(len(vt) + len(ee))  # both kinds' sides in one array: the pair batch's (_search)
+        self._sides_device = None
+        if not isinstance(geo, ListGeometry):  # the codes of the device path (_list_geometry)
+            if (vt_keys is not None or not len(vt)) and (ee_keys is not None or not len(ee)):
+                return self._device_pair_sides(geo, memory, (vt_keys, ee_keys), block)
+            geo = geo.geometry()
         vt_sides = step_sides(geo.vt_above, vt, geo.vt_side, memory.vertex_triangle, vt_keys, block[:len(vt)])
         keep = geo.ee_keep
         ee_sides = step_sides(keep & geo.ee_interior, ee, geo.ee_side, memory.edge_edge, ee_keys, block[len(vt):])
         return vt_sides, keep, ee_sides
+
+    def _sides_on_device(self) -> bool:
+        """Whether the lists' geometry is their :class:`~sim_core.energies.contact.sides_kernel.SideCodes` and the step
+        sides are placed from them (:meth:`_list_geometry`, :meth:`_device_pair_sides`; :attr:`device_sides`)."""
+        if not self.taichi:
+            return False
+        if self.device_sides is not None:
+            return bool(self.device_sides)
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
+        from sim_core.ti_backend import current_arch
+
+        return current_arch() == "cuda"
+
+    def _device_pair_sides(self, codes, memory: CollisionMemory, keys: tuple, block: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_pair_sides` from the lists' :class:`~sim_core.energies.contact.sides_kernel.SideCodes` at ``x^n``
+        (:func:`~sim_core.energies.contact.sides_kernel.step_sides_of`) with the memory's pairs placed among the lists'
+        sorted ``keys`` (a search a remembered pair; ``block`` ``(p + q,)`` the sides' array); on CUDA the sides'
+        device copy is kept for the pair batch (:attr:`_sides_device`)."""
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
+        from sim_core.energies.contact.sides_kernel import step_sides_of
+
+        p = codes.split
+        found = [memory_of.found_in(k) if k is not None else (np.zeros(0, np.int64), np.zeros(0))
+                 for memory_of, k in zip((memory.vertex_triangle, memory.edge_edge), keys)]
+        got = step_sides_of(codes, (np.concatenate([found[0][0], found[1][0] + p]),
+                                    np.concatenate([found[0][1], found[1][1]])), block)
+        self._sides_device = (block, got.device)
+        return block[:p], got.ee_keep, block[p:]
 
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
         """Potentials over ``candidates`` with the step's sides (:meth:`_pair_sides`, of every pair in one geometry
@@ -599,7 +647,9 @@ class ContactSet:
             # one launch evaluates both at each new x; its sides by layout row are both lists' (0 where a pair is left
             # out), the one array of _pair_sides unless a release copied a part
             whole = vt_sides.base if vt_sides.base is not None and vt_sides.base is ee_sides.base else None
-            PairBatch(*pots, layout=lists.batch_layout(ee_rows), sides=whole)
+            kept = getattr(self, "_sides_device", None)  # the same sides where the sides' launch wrote them
+            device = kept[1] if kept is not None and whole is not None and kept[0] is whole else None
+            PairBatch(*pots, layout=lists.batch_layout(ee_rows), sides=whole, device_sides=device)
         return pots, ee_rows
 
     def _list_vertices(self, vt: np.ndarray, ee: np.ndarray) -> CandidateVertices:

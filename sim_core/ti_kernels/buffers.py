@@ -139,7 +139,7 @@ def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False, re
     Args:
         kept: the caller's cache (one per owner of the arrays).
         name: the array's name in it.
-        host: the array, C-contiguous (float64, int32 or int64), never changed in place while it is used here
+        host: the array, C-contiguous (float64, int32, int64 or int8), never changed in place while it is used here
             (a changed array is a new object) unless ``refresh``.
         scratch: a work array of the kernels (device contents only).
         refresh: copy ``host`` at every call (a kept host array whose contents change in place).
@@ -158,13 +158,21 @@ def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False, re
         if changed and entry is not None and entry[0] is host and entry[2] is not None \
                 and np.array_equal(entry[2], host):
             return entry[1]
-        dtype = {np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32, np.dtype(np.int64): ti.i64}[host.dtype]
+        dtype = _taichi_dtype(host.dtype)
         dev = entry[1] if entry is not None and tuple(entry[1].shape) == host.shape and entry[1].dtype == dtype \
             else device_copy.new_ndarray(dtype, host.shape)
         if not scratch and host.size:
             _from_numpy(dev, np.ascontiguousarray(host))
         entry = kept[name] = (host, dev, host.copy() if changed else None)
     return entry[1]
+
+
+def _taichi_dtype(dtype: np.dtype):
+    """The Taichi dtype of a host array's ``dtype`` (float64, int32, int64 or int8) for its device copy."""
+    from sim_core.ti_backend import ti
+
+    return {np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32, np.dtype(np.int64): ti.i64,
+            np.dtype(np.int8): ti.i8}[np.dtype(dtype)]
 
 
 def rows_on_device(kept: dict, name: str, host: np.ndarray, refresh: bool = False):
@@ -191,7 +199,7 @@ def rows_on_device(kept: dict, name: str, host: np.ndarray, refresh: bool = Fals
     if current_arch() != "cuda":
         return host
     rows, tail = host.shape[0], host.shape[1:]
-    dtype = {np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32, np.dtype(np.int64): ti.i64}[host.dtype]
+    dtype = _taichi_dtype(host.dtype)
     if entry is not None and entry[1].dtype == dtype and tuple(entry[1].shape[1:]) == tail \
             and entry[1].shape[0] >= rows:
         dev, staging = entry[1], entry[2]

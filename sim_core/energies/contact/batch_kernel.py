@@ -221,6 +221,10 @@ class PairBatch:
             each edge-edge candidate's, ``ee``'s at the rows ``layout.ee_rows``, any value elsewhere: never read) when
             the caller has them in one array (the contact set's step sides), taken as they are (never written); None:
             made here from the potentials' sides.
+        device_sides: with ``sides``, the same values where a CUDA launch reads them (a float64 Taichi ndarray of at
+            least ``len(local)`` rows, never written while the batch holds it: the contact set's step sides' launch,
+            :func:`~sim_core.energies.contact.sides_kernel.step_sides_of`), taken instead of a copy of
+            ``sides`` sent once; None: ``sides`` sent.
 
     Pairs and sides are fixed at construction (as the potentials' are); each potential's own ``eps``
     is read at every evaluation. The kernel reads pair ``k``'s vertices and side at row ``layout.rows[k]``.
@@ -262,7 +266,8 @@ class PairBatch:
     :data:`PACKED_MAX_PAIRS` pairs (a single environment, whose Newton matrix is assembled on the host; the kernel
     orders the active pairs in ``a^2`` comparisons). The values are the same."""
 
-    def __init__(self, vt, ee, layout: BatchLayout | None = None, sides: np.ndarray | None = None) -> None:
+    def __init__(self, vt, ee, layout: BatchLayout | None = None, sides: np.ndarray | None = None,
+                 device_sides=None) -> None:
         require_backend("PairBatch")
         # the potentials hold the batch (_batch) and it holds them weakly: no reference cycle, so that a step's
         # batches, their device arrays and candidate layouts go when their potentials go (not at a full collection)
@@ -293,6 +298,8 @@ class PairBatch:
             self.sides[p:][layout.ee_rows] = ee.sides  # (int64 rows: no index conversion)
         self._x_own: np.ndarray | None = None  # off CUDA: the kernel's positions of ``own`` (_own_positions)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
+        if device_sides is not None and sides is not None:  # the given sides' device copy, taken as it is
+            self._device["sides"] = (self.sides, device_sides, None)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
         self._own_int32: np.ndarray | None = None  # ``own`` as int32 (_own32)
         self._vertices_every: np.ndarray | None = None  # the pairs' vertices, int32 (_every_vertex)

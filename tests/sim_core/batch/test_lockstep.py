@@ -300,3 +300,34 @@ def test_stacked_controls_move_each_copys_pose_targets_by_its_offset(model):
                                 Control(effector_pose_target={"pad": poses[2]})])  # (a 6-number target: pose by pose)
     assert np.array_equal(odd.effector_pose_target["pad#0"], np.r_[poses[0][:3] + scene.offset[0], poses[0][3:6]])
     assert np.array_equal(odd.effector_pose_target["pad#2"], np.r_[poses[2][:3] + scene.offset[2], poses[2][3:]])
+
+
+@pytest.mark.parametrize("config", [LOCKSTEP_CG, LOCKSTEP_ENVELOPE], ids=["device-cg", "envelope"])
+def test_lockstep_with_the_step_sides_from_device_codes_takes_the_host_sides_steps(model, monkeypatch, config):
+    """The candidate lists' step sides from their int8 codes (``ContactSet.device_sides``, the CUDA default) against
+    the host's: with copy 1 blown up, it alone fails and the others take the same Newton iterations and states to
+    round-off (the CPU arch's parallel reductions differ run to run by ~1e-17 m), which equal their separate runs to the
+    solver tolerance."""
+    from sim_core.contact_set import ContactSet
+    from sim_core.energies.contact import sides_kernel
+
+    launches = []
+    kernel = sides_kernel._side_codes_kernel
+    monkeypatch.setattr(sides_kernel, "_side_codes_kernel", lambda *a: (launches.append(a), kernel(*a))[1])
+    runs = {}
+    for on_device in (True, False):
+        monkeypatch.setattr(ContactSet, "device_sides", on_device)
+        batch = _lockstep_batch(model, config)
+        batch.sims[1].state.v[model.bodies["sheet"].vertices[len(model.bodies["sheet"].vertices) // 2]] = \
+            [0.0, 0.0, np.nan]
+        before = len(launches)
+        runs[on_device] = (_run(batch), batch)
+        assert (len(launches) > before) == on_device
+    ((device_states, device_results), device_batch), ((host_states, host_results), _) = runs[True], runs[False]
+    assert device_results[0].failed_now == [1] and list(device_batch.active) == [True, False, True]
+    for k in range(STEPS):
+        for i in (0, 2):
+            assert device_results[k].infos[i].iterations == host_results[k].infos[i].iterations, (k, i)
+            np.testing.assert_allclose(device_states[k][i].x, host_states[k][i].x, rtol=0, atol=1e-15)
+    for i in (0, 2):
+        assert np.max(np.abs(device_states[-1][i].x - separate_run(model, PARAMS[i], MOTIONS[i])[-1].x)) <= TOL

@@ -12,7 +12,8 @@ from tests.sim_core.ti_kernels.conftest import TEST_ARCH
 from tests.sim_core.ti_kernels.test_fused_elastic import _forming_steps
 
 _CALLERS = ("sim_core.ti_backend", "sim_core.energies.friction.kernel", "sim_core.energies.contact.batch_kernel",
-            "sim_core.energies.contact.setup_kernel", "sim_core.ti_kernels.hash_grid")
+            "sim_core.energies.contact.setup_kernel", "sim_core.energies.contact.sides_kernel",
+            "sim_core.ti_kernels.hash_grid")
 
 
 @pytest.mark.skipif(TEST_ARCH != "cpu", reason=(
@@ -22,7 +23,8 @@ _CALLERS = ("sim_core.ti_backend", "sim_core.energies.friction.kernel", "sim_cor
 def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
     import importlib
 
-    from sim_core.energies.contact import batch_kernel, setup_kernel
+    from sim_core.energies.contact import batch_kernel, setup_kernel, sides_kernel  # noqa: F401 (imported before
+    # the arch queries are changed: a module first imported after would keep the changed query as its own)
     from sim_core.energies.friction import device_rows
     from sim_core.energies.friction import kernel as friction_kernel
     from sim_core.ti_backend import ti
@@ -49,7 +51,7 @@ def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
             pairs = {"packed_sides", "packed_rows"} | ({"packed_vertices_every"} if offered else set())
             for module, names in ((friction_kernel, own),
                                   (batch_kernel, pairs | {"packed", "d", "region", "gradients", "slots"}),
-                                  (setup_kernel, {"6:_codes_kernel"}),
+                                  (setup_kernel, {"2:_place_kernel"}),
                                   # the friction's rows built on the device (a single environment's Newton loop then
                                   # reads them back once and evaluates on the host arrays)
                                   (device_rows, {"pairs", "vertex_body", "table"})):
