@@ -70,15 +70,17 @@ class _Timers:
         self.calls[name] = self.calls.get(name, 0) + 1
 
 
-def _instrument(timers: _Timers, steps: list) -> None:
+def _instrument(timers: _Timers, steps: list, slow: list) -> None:
     """Wrap the generation's parts (module docstring); ``steps`` collects ``(wall s, lockstep Newton iterations,
-    mean of the stepped copies' iterations)`` of each batched step."""
+    mean of the stepped copies' iterations)`` of each batched step, ``slow`` ``(s, kernel name)`` of each kernel
+    instance's first launch."""
     import cma
     from taichi.lang import kernel_impl
 
     import sim_core.optim.cli as cli
     from sim_core.batch.lockstep import LockstepSolver
     from sim_core.batch.simulation import BatchedSimulation
+    from sim_core.batch.stacked import StackedScene
     from sim_core.tasks import rollout as ro
 
     def on_step(dt, res):
@@ -91,6 +93,10 @@ def _instrument(timers: _Timers, steps: list) -> None:
     timers.wrap(BatchedSimulation, "__init__", "  batch build (BatchedSimulation)")
     timers.wrap(LockstepSolver, "__init__", "  lockstep solver build")
     timers.wrap(BatchedSimulation, "step", "batched steps", on_step)
+    timers.wrap(LockstepSolver, "step_copies", "  the lockstep solver's steps (step_copies)")
+    timers.wrap(StackedScene, "copy_states", "  the copies' states written back (copy_states)")
+    timers.wrap(StackedScene, "stack_controls", "  the controls stacked (stack_controls)")
+    timers.wrap(StackedScene, "stack_states", "  the states stacked (stack_states)")
     timers.wrap(ro.TaskEpisode, "command", "  host: commands")
     timers.wrap(ro.TaskEpisode, "record_step", "  host: early-stop checks")
     timers.wrap(ro._EpisodeLog, "add", "  host: step logs")
@@ -115,7 +121,9 @@ def _instrument(timers: _Timers, steps: list) -> None:
         try:
             return launch(self, t_kernel, *args)
         finally:
-            timers.add("taichi: first launches (compile / cache load)", time.perf_counter() - t)
+            dt = time.perf_counter() - t
+            timers.add("taichi: first launches (compile / cache load)", dt)
+            slow.append((dt, getattr(self.func, "__qualname__", "?")))
 
     kernel_impl.Kernel.launch_kernel = first_launch
     gc_start = [0.0]
@@ -145,12 +153,13 @@ def main() -> int:
 
     init_backend(args.arch)
     print(f"imports and Taichi init: {time.perf_counter() - t0:.2f} s")
-    timers, steps = _Timers(), []
-    _instrument(timers, steps)
+    timers, steps, slow = _Timers(), [], []
+    _instrument(timers, steps, slow)
     backend = {"cpu": "taichi-cpu", "cuda": "taichi-cuda"}[args.arch]
     for k in range(1, args.repeat + 1):
         timers.reset()
         steps.clear()
+        slow.clear()
         out = Path(args.out) / f"run{k}"
         argv = [args.task, "--method", "cma", "--batched", "--backend", backend, "--episodes", str(args.population),
                 "--population", str(args.population), "--seed", str(args.seed), "--out", str(out), "--force",
@@ -176,6 +185,8 @@ def main() -> int:
             print(f"population run's host work outside the batched steps: {host:.3f} s")
         for name in sorted(timers.seconds, key=lambda n: -timers.seconds[n]):
             print(f"  {name:55s} {timers.seconds[name]:9.3f} s {timers.calls[name]:7d} calls")
+        slow.sort(reverse=True)
+        print("slowest first launches: " + ", ".join(f"{name} {dt:.2f} s" for dt, name in slow[:8]))
         sys.stdout.flush()
     return 0
 

@@ -70,17 +70,45 @@ def _population(task, n: int, seed: int = 5):
 
 
 def _record_chunks(monkeypatch) -> list[int]:
-    """Sizes of the batches the evaluator rolls out (sim_core.tasks.rollout.rollout_population calls)."""
+    """Sizes of the batches the evaluator rolls out (sim_core.tasks.rollout.PopulationRollout.run calls)."""
     import sim_core.tasks.rollout as rollout
 
-    sizes, real = [], rollout.rollout_population
+    sizes, real = [], rollout.PopulationRollout.run
 
-    def spy(task, actions, *args, **kwargs):
-        sizes.append(len(actions))
-        return real(task, actions, *args, **kwargs)
+    def spy(self, *args, **kwargs):
+        sizes.append(len(self.actions))
+        return real(self, *args, **kwargs)
 
-    monkeypatch.setattr(rollout, "rollout_population", spy)
+    monkeypatch.setattr(rollout.PopulationRollout, "run", spy)
     return sizes
+
+
+def test_resident_batch_gives_each_population_the_results_of_separate_rollouts(monkeypatch):
+    """The batch built for the first population is restarted for the next ones (one build, one stacked
+    solver): each population's episodes equal, bit for bit, those of a batch built for it alone, and the
+    separate (serial) rollouts to the Newton tolerance; the first population again gives its first results."""
+    import sim_core.batch.lockstep as lockstep
+    from tests.support.counting import counting
+
+    task = folding_task(horizon=2)
+    first_actions, next_actions = _population(task, 3, seed=5), _population(task, 3, seed=6)
+    solvers = counting(monkeypatch, lockstep, "LockstepSolver")
+    evaluator = BatchedEvaluator(task, solver_config=TIGHT)
+    first = evaluator.evaluate(first_actions)
+    later = evaluator.evaluate(next_actions)
+    again = evaluator.evaluate(first_actions)
+    assert len(solvers) == 1  # one batch, restarted twice
+    alone = BatchedEvaluator(task, solver_config=TIGHT).evaluate(next_actions)
+    assert len(solvers) == 2
+    fields = lambda results: [(r.reward, r.steps_done, r.infeasible, r.wrench_peak_N) for r in results]
+    assert fields(later) == fields(alone)
+    assert fields(again) == fields(first)
+    serial = SerialEvaluator(task, solver_config=TIGHT).evaluate(next_actions)
+    assert [r.reward for r in later] == pytest.approx([r.reward for r in serial], rel=1e-6)
+    assert [r.steps_done for r in later] == [r.steps_done for r in serial] == [2, 2, 2]
+    assert len({r.reward for r in later} | {r.reward for r in first}) == 6  # the populations differ
+    with pytest.raises(ConfigError, match="2 action sequences for a batch of 3"):
+        evaluator._resident[3][1].restart(next_actions[:2])
 
 
 def test_chunked_population_matches_one_batch(monkeypatch):
