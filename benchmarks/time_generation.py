@@ -8,7 +8,8 @@ Usage: ``python benchmarks/time_generation.py --arch cuda --out DIR [--task fold
 run's wall minus a later one's is the compilation and first-launch cost, and a later run's wall is what a
 generation costs once the process is warm.
 
-Per run: ``result.json``'s ``wall_time_s`` (the generation: what ``thinshell optimise`` reports), the best score,
+Per run: ``wall_time_s`` (the generations: what ``thinshell optimise`` reports in ``result.json``), each generation's
+wall, the best score,
 the rollouts' rewards, and the split (inclusive seconds of wrapped parts): the population's build
 (:class:`~sim_core.tasks.rollout.PopulationRollout`, of which the lockstep solver's), its stepping (each batched
 step's wall: the first, the rest, their mean, the lockstep's Newton iterations a step), the population's host work
@@ -23,7 +24,6 @@ from __future__ import annotations
 import argparse
 import functools
 import gc
-import json
 import sys
 import time
 from pathlib import Path
@@ -70,14 +70,15 @@ class _Timers:
         self.calls[name] = self.calls.get(name, 0) + 1
 
 
-def _instrument(timers: _Timers, steps: list, slow: list) -> None:
+def _instrument(timers: _Timers, steps: list, slow: list, generations: list) -> None:
     """Wrap the generation's parts (module docstring); ``steps`` collects ``(wall s, lockstep Newton iterations,
     mean of the stepped copies' iterations)`` of each batched step, ``slow`` ``(s, kernel name)`` of each kernel
-    instance's first launch."""
+    instance's first launch, ``generations`` each CMA-ES generation's wall (s)."""
     import cma
     from taichi.lang import kernel_impl
 
     import sim_core.optim.cli as cli
+    import sim_core.optim.search as search
     from sim_core.batch.lockstep import LockstepSolver
     from sim_core.batch.simulation import BatchedSimulation
     from sim_core.batch.stacked import StackedScene
@@ -87,7 +88,10 @@ def _instrument(timers: _Timers, steps: list, slow: list) -> None:
         its = [info.iterations for info in res.infos if info is not None]
         steps.append((dt, max(its, default=0), sum(its) / max(len(its), 1)))
 
+    timers.wrap(search, "_cma_generation", "CMA-ES generations", lambda dt, _: generations.append(dt))
     timers.wrap(ro.PopulationRollout, "__init__", "population build")
+    if hasattr(ro.PopulationRollout, "restart"):
+        timers.wrap(ro.PopulationRollout, "restart", "population restart (resident batch)")
     timers.wrap(ro.PopulationRollout, "run", "population run")
     timers.wrap(ro.TaskEpisode, "__init__", "  episodes' build (TaskEpisode)")
     timers.wrap(BatchedSimulation, "__init__", "  batch build (BatchedSimulation)")
@@ -143,37 +147,54 @@ def main() -> int:
     ap.add_argument("--task", default="folding_u")
     ap.add_argument("--population", type=int, default=40)
     ap.add_argument("--horizon", type=int, default=None, help="steps an episode (default: the task's)")
-    ap.add_argument("--repeat", type=int, default=2, help="generations, each a fresh run in this process")
+    ap.add_argument("--generations", type=int, default=1, help="CMA-ES generations a run (episodes = population x this)")
+    ap.add_argument("--repeat", type=int, default=2, help="runs of thinshell optimise in this process")
+    ap.add_argument("--outputs", choices=("all", "first", "none"), default="all",
+                    help="which runs write their outputs (write_outputs: replays and plots); the others skip them")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", required=True, help="directory of the runs' outputs (DIR/runK, replaced)")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    from sim_core.optim.cli import optimise_main
+    import sim_core.optim.cli as cli
     from sim_core.ti_backend import init_backend
 
     init_backend(args.arch)
     print(f"imports and Taichi init: {time.perf_counter() - t0:.2f} s")
-    timers, steps, slow = _Timers(), [], []
-    _instrument(timers, steps, slow)
+    timers, steps, slow, generations = _Timers(), [], [], []
+    _instrument(timers, steps, slow, generations)
+    write_outputs, run, searched = cli.write_outputs, cli._run, []
+
+    def timed_run(state, *a, **kw):  # what thinshell optimise's wall_time_s times, and the search state
+        t = time.perf_counter()
+        run(state, *a, **kw)
+        searched.append((time.perf_counter() - t, state))
+
+    cli._run = timed_run
     backend = {"cpu": "taichi-cpu", "cuda": "taichi-cuda"}[args.arch]
     for k in range(1, args.repeat + 1):
         timers.reset()
-        steps.clear()
-        slow.clear()
+        for kept in (steps, slow, generations):
+            kept.clear()
+        if args.outputs == "none" or (args.outputs == "first" and k > 1):
+            cli.write_outputs = lambda *a, **kw: []  # the outputs not written (timed 0)
+        else:
+            cli.write_outputs = write_outputs
         out = Path(args.out) / f"run{k}"
-        argv = [args.task, "--method", "cma", "--batched", "--backend", backend, "--episodes", str(args.population),
+        argv = [args.task, "--method", "cma", "--batched", "--backend", backend,
+                "--episodes", str(args.population * args.generations),
                 "--population", str(args.population), "--seed", str(args.seed), "--out", str(out), "--force",
                 "--no-progress"]
         if args.horizon is not None:
             argv += ["--horizon", str(args.horizon)]
         t = time.perf_counter()
-        optimise_main(argv)
+        cli.optimise_main(argv)
         total = time.perf_counter() - t
-        doc = json.loads((out / "result.json").read_text())
-        rewards = [h["reward"] for h in doc["history"]]
-        print(f"=== run {k}: wall_time_s {doc['wall_time_s']:.2f} (the generation), with outputs {total:.2f} s; "
-              f"best score {doc['best_score']!r}")
-        print(f"rewards: {json.dumps(rewards)}")
+        wall, state = searched[-1]
+        rewards = [h.reward for h in state.history]
+        print(f"=== run {k}: wall_time_s {wall:.2f} (the generations: {args.generations} of {args.population}), "
+              f"with the outputs {total:.2f} s; best score {state.best_score!r}")
+        print(f"generations' walls: {', '.join(f'{g:.2f}' for g in generations)} s")
+        print(f"rewards: {rewards!r}")
         walls = [s[0] for s in steps]
         if walls:
             rest = walls[1:] or [0.0]
