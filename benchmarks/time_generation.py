@@ -141,6 +141,29 @@ def _instrument(timers: _Timers, steps: list, slow: list, generations: list) -> 
     gc.callbacks.append(on_gc)
 
 
+def _report(title: str, timers: _Timers, steps: list, slow: list) -> None:
+    """Print one generation's split (and clear what it gathered)."""
+    walls = [s[0] for s in steps]
+    print(f"--- {title}")
+    if walls:
+        rest = walls[1:] or [0.0]
+        print(f"steps: {len(walls)}; first {walls[0]:.3f} s ({steps[0][1]} lockstep Newton iterations); the rest "
+              f"{sum(rest):.3f} s, mean {sum(rest) / len(rest) * 1e3:.1f} ms; lockstep Newton iterations a step "
+              f"{sum(s[1] for s in steps) / len(steps):.2f} (the copies' own {sum(s[2] for s in steps) / len(steps):.2f})")
+    if "population run" in timers.seconds:
+        host = timers.seconds["population run"] - timers.seconds.get("batched steps", 0.0)
+        print(f"population run's host work outside the batched steps: {host:.3f} s")
+    for name in sorted(timers.seconds, key=lambda n: -timers.seconds[n]):
+        print(f"  {name:55s} {timers.seconds[name]:9.3f} s {timers.calls[name]:7d} calls")
+    if slow:
+        slow.sort(reverse=True)
+        print("slowest first launches: " + ", ".join(f"{name} {dt:.2f} s" for dt, name in slow[:8]))
+    sys.stdout.flush()
+    timers.reset()
+    steps.clear()
+    slow.clear()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
@@ -162,23 +185,35 @@ def main() -> int:
     print(f"imports and Taichi init: {time.perf_counter() - t0:.2f} s")
     timers, steps, slow, generations = _Timers(), [], [], []
     _instrument(timers, steps, slow, generations)
-    write_outputs, run, searched = cli.write_outputs, cli._run, []
+    import sim_core.optim.search as search
 
-    def timed_run(state, *a, **kw):  # what thinshell optimise's wall_time_s times, and the search state
+    write_outputs, run, generation = cli.write_outputs, cli._run, search._cma_generation  # (timed: _instrument)
+
+    def timed_generation(state, space):  # each generation's split printed as it ends
+        logs = generation(state, space)
+        _report(f"generation {len(generations)}: {generations[-1]:.2f} s",
+                timers, steps, slow)
+        return logs
+
+    def timed_run(state, *a, **kw):  # what thinshell optimise's wall_time_s times
         t = time.perf_counter()
         run(state, *a, **kw)
-        searched.append((time.perf_counter() - t, state))
+        wall = time.perf_counter() - t
+        print(f"=== wall_time_s {wall:.2f} (the generations: {len(generations)} of {args.population}: "
+              f"{', '.join(f'{g:.2f}' for g in generations)} s); best score {state.best_score!r}")
+        print(f"rewards: {[h.reward for h in state.history]!r}")
+        sys.stdout.flush()
 
-    cli._run = timed_run
+    search._cma_generation, cli._run = timed_generation, timed_run
     backend = {"cpu": "taichi-cpu", "cuda": "taichi-cuda"}[args.arch]
     for k in range(1, args.repeat + 1):
         timers.reset()
-        for kept in (steps, slow, generations):
-            kept.clear()
+        generations.clear()
         if args.outputs == "none" or (args.outputs == "first" and k > 1):
-            cli.write_outputs = lambda *a, **kw: []  # the outputs not written (timed 0)
+            cli.write_outputs = lambda *a, **kw: []  # the outputs not written
         else:
             cli.write_outputs = write_outputs
+        print(f"====== run {k}")
         out = Path(args.out) / f"run{k}"
         argv = [args.task, "--method", "cma", "--batched", "--backend", backend,
                 "--episodes", str(args.population * args.generations),
@@ -186,29 +221,9 @@ def main() -> int:
                 "--no-progress"]
         if args.horizon is not None:
             argv += ["--horizon", str(args.horizon)]
-        t = time.perf_counter()
         cli.optimise_main(argv)
-        total = time.perf_counter() - t
-        wall, state = searched[-1]
-        rewards = [h.reward for h in state.history]
-        print(f"=== run {k}: wall_time_s {wall:.2f} (the generations: {args.generations} of {args.population}), "
-              f"with the outputs {total:.2f} s; best score {state.best_score!r}")
-        print(f"generations' walls: {', '.join(f'{g:.2f}' for g in generations)} s")
-        print(f"rewards: {rewards!r}")
-        walls = [s[0] for s in steps]
-        if walls:
-            rest = walls[1:] or [0.0]
-            print(f"steps: {len(walls)}; first {walls[0]:.3f} s; the rest {sum(rest):.3f} s, mean {sum(rest) / len(rest) * 1e3:.1f} ms; "
-                  f"lockstep Newton iterations a step {sum(s[1] for s in steps) / len(steps):.2f} "
-                  f"(the copies' own {sum(s[2] for s in steps) / len(steps):.2f}); first step {steps[0][1]}")
-        if "population run" in timers.seconds:
-            host = timers.seconds["population run"] - timers.seconds.get("batched steps", 0.0)
-            print(f"population run's host work outside the batched steps: {host:.3f} s")
-        for name in sorted(timers.seconds, key=lambda n: -timers.seconds[n]):
-            print(f"  {name:55s} {timers.seconds[name]:9.3f} s {timers.calls[name]:7d} calls")
-        slow.sort(reverse=True)
-        print("slowest first launches: " + ", ".join(f"{name} {dt:.2f} s" for dt, name in slow[:8]))
-        sys.stdout.flush()
+        if cli.write_outputs is write_outputs:
+            _report("after the generations (the outputs)", timers, steps, slow)
     return 0
 
 
