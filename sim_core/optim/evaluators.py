@@ -182,9 +182,14 @@ class BatchedEvaluator:
         self._resident[len(seqs)] = (values, rollout)
         return rollout
 
-    def close(self) -> None:
-        """Release the resident batches."""
+    def release(self) -> None:
+        """Drop the resident batches (their host and device memory), e.g. before a gradient phase builds its own
+        batch; the next call builds a batch again."""
         self._resident.clear()
+
+    def close(self) -> None:
+        """Release the resident batches (:meth:`release`)."""
+        self.release()
 
 
 def episode_result(r, horizon: int) -> EpisodeResult:

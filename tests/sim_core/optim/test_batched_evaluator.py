@@ -186,3 +186,18 @@ def test_auto_batch_size_measured_on_this_host():
     got = evaluator.evaluate(actions)
     assert evaluator.sizing.B >= 1 and evaluator.sizing.per_copy_bytes["host"] > 0
     assert len(got) == 2 and all(g.steps_done == 2 for g in got)
+
+
+def test_gradient_phase_releases_the_resident_batch():
+    """A hybrid search's gradient phase does not keep the CMA-ES populations' batch: the first gradient drops it,
+    and a later population builds a batch again with the same results."""
+    task = folding_task(horizon=2)
+    decoder = ControlPointDecoder.for_task(task, control_points=1)
+    evaluator = BatchedEvaluator(task, solver_config=TIGHT)
+    space = ActionSpace(decoder, evaluator, task)
+    points = [np.full(decoder.dim, 0.3), np.full(decoder.dim, -0.2)]
+    first = space.cma_evaluate(points)
+    assert list(evaluator._resident) == [2]
+    res, grad = space.gd_gradient(np.zeros(decoder.horizon * task.action_dim))
+    assert evaluator._resident == {} and np.all(np.isfinite(grad)) and np.any(grad != 0.0)
+    assert [r.reward for r in space.cma_evaluate(points)] == [r.reward for r in first]
