@@ -70,16 +70,14 @@ def _population(task, n: int, seed: int = 5):
 
 
 def _record_chunks(monkeypatch) -> list[int]:
-    """Sizes of the batches the evaluator rolls out (sim_core.tasks.rollout.PopulationRollout.run calls)."""
-    import sim_core.tasks.rollout as rollout
+    """Sizes of the batches the evaluator rolls out (its ``_rollout`` calls: not the size probes' batches)."""
+    sizes, real = [], BatchedEvaluator._rollout
 
-    sizes, real = [], rollout.PopulationRollout.run
+    def spy(self, seqs, *args, **kwargs):
+        sizes.append(len(seqs))
+        return real(self, seqs, *args, **kwargs)
 
-    def spy(self, *args, **kwargs):
-        sizes.append(len(self.actions))
-        return real(self, *args, **kwargs)
-
-    monkeypatch.setattr(rollout.PopulationRollout, "run", spy)
+    monkeypatch.setattr(BatchedEvaluator, "_rollout", spy)
     return sizes
 
 
