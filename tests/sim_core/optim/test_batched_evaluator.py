@@ -14,6 +14,7 @@ from sim_core.optim.evaluators import BatchedEvaluator, SerialEvaluator, make_ev
 from sim_core.optim.search import ActionSpace, new_state, optimise
 from sim_core.solver_config import SolverConfig
 from tests.sim_core.optim.task_support import folding_task
+from tests.support.emulated_cuda import emulate_cuda
 
 
 TIGHT = SolverConfig(dt_halvings_on_failure=0, tol_velocity=1e-7)
@@ -81,26 +82,13 @@ def _record_chunks(monkeypatch) -> list[int]:
     return sizes
 
 
-def _emulate_cuda(monkeypatch) -> None:
-    """Every loaded sim_core module's arch query answers "cuda" (the CUDA paths, emulated on the CPU arch), the byte
-    copies' excepted (``benchmarks/emulated_cuda.py``; as ``tests/sim_core/ti_kernels/test_friction_device_rows.py``)."""
-    import sys
-
-    from sim_core import ti_backend
-    from sim_core.ti_kernels import device_copy
-
-    for name, module in list(sys.modules.items()):
-        if name.startswith("sim_core") and module is not device_copy \
-                and getattr(module, "current_arch", None) is ti_backend.current_arch:
-            monkeypatch.setattr(module, "current_arch", lambda: "cuda")
-
-
-@pytest.mark.parametrize("path", ["numpy", "taichi-cpu", "cuda emulated"])
+@pytest.mark.parametrize("path", ["numpy", "numpy sequential", "taichi-cpu", "cuda emulated"])
 def test_resident_batch_gives_each_population_the_results_of_separate_rollouts(monkeypatch, path):
     """The batch built for the first population is restarted for the next ones (one build, one stacked
     solver): each population's episodes equal, bit for bit, those of a batch built for it alone, and the
     separate (serial) rollouts to the Newton tolerance; the first population again gives its first results.
-    On NumPy, on taichi-cpu and on CUDA's paths (device line search, CG, friction rows; emulated on the CPU arch)."""
+    On NumPy (in lockstep, and copy after copy: each copy's own solver caches cleared), on taichi-cpu and on CUDA's
+    paths (device line search, CG, friction rows; emulated on the CPU arch)."""
     import dataclasses
 
     import sim_core.batch.lockstep as lockstep
@@ -108,19 +96,20 @@ def test_resident_batch_gives_each_population_the_results_of_separate_rollouts(m
 
     task = folding_task(horizon=2)
     first_actions, next_actions = _population(task, 3, seed=5), _population(task, 3, seed=6)
-    config = dataclasses.replace(TIGHT, backend="numpy" if path == "numpy" else "taichi-cpu")
+    config = dataclasses.replace(TIGHT, backend="numpy" if path.startswith("numpy") else "taichi-cpu")
+    lockstep_batch = path != "numpy sequential"
     if path == "cuda emulated":  # the modules loaded (a first batch and episode run), then their arch queries
         BatchedEvaluator(task, solver_config=config).evaluate(first_actions[:2])
         SerialEvaluator(task, solver_config=config).evaluate(first_actions[:1])
-        _emulate_cuda(monkeypatch)
+        emulate_cuda(monkeypatch)
     solvers = counting(monkeypatch, lockstep, "LockstepSolver")
-    evaluator = BatchedEvaluator(task, solver_config=config)
+    evaluator = BatchedEvaluator(task, solver_config=config, lockstep=lockstep_batch)
     first = evaluator.evaluate(first_actions)
     later = evaluator.evaluate(next_actions)
     again = evaluator.evaluate(first_actions)
-    assert len(solvers) == 1  # one batch, restarted twice
-    alone = BatchedEvaluator(task, solver_config=config).evaluate(next_actions)
-    assert len(solvers) == 2
+    assert len(solvers) == int(lockstep_batch)  # one batch, restarted twice
+    alone = BatchedEvaluator(task, solver_config=config, lockstep=lockstep_batch).evaluate(next_actions)
+    assert len(solvers) == 2 * int(lockstep_batch)
     fields = lambda results: [(r.reward, r.steps_done, r.infeasible, r.wrench_peak_N) for r in results]
     assert fields(later) == fields(alone)
     assert fields(again) == fields(first)
