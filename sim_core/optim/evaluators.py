@@ -62,7 +62,7 @@ class SerialEvaluator:
 
 class BatchedEvaluator:
     """A population's episodes as one batch: one copy of the task's scene per sequence, stepped
-    together (:func:`sim_core.tasks.rollout.rollout_population`, :class:`sim_core.batch.BatchedSimulation`),
+    together (:class:`sim_core.tasks.rollout.PopulationRollout`, :class:`sim_core.batch.BatchedSimulation`),
     by default in lockstep (``SolverConfig.lockstep``: one Newton solve of all copies per step,
     :mod:`sim_core.batch.lockstep`).
 
