@@ -62,9 +62,16 @@ class SerialEvaluator:
 
 class BatchedEvaluator:
     """A population's episodes as one batch: one copy of the task's scene per sequence, stepped
-    together (:func:`sim_core.tasks.rollout.rollout_population`, :class:`sim_core.batch.BatchedSimulation`),
+    together (:class:`sim_core.tasks.rollout.PopulationRollout`, :class:`sim_core.batch.BatchedSimulation`),
     by default in lockstep (``SolverConfig.lockstep``: one Newton solve of all copies per step,
     :mod:`sim_core.batch.lockstep`).
+
+    The batch is built at the first call and kept (resident) for the calls after it: a later population
+    of the same size and parameter values runs on the same copies, stacked model and lockstep solver
+    (:meth:`sim_core.tasks.rollout.PopulationRollout.restart`: one batched reset, nothing built or
+    compiled again), with the results of a batch built for it; other parameter values build a new batch
+    in its place (an inverse task's candidates); a population split into chunks keeps one batch per chunk
+    size.
 
     Each sequence gets the :class:`EpisodeResult` (without states) that :class:`SerialEvaluator` gives
     it, to the Newton tolerance (in lockstep; exactly when the copies are stepped one after another):
@@ -108,6 +115,7 @@ class BatchedEvaluator:
         self.batch_size = batch_size if batch_size in (None, "auto") else int(batch_size)
         self.reserve_fraction = float(reserve_fraction)
         self.sizing = None
+        self._resident: dict[int, tuple] = {}  # members -> (their parameter values, PopulationRollout)
 
     def _chunk_size(self, seqs: list[np.ndarray], plist: list[dict]) -> int:
         """Copies per batch for this call (``len(seqs)`` without a bound)."""
@@ -140,7 +148,6 @@ class BatchedEvaluator:
             InsufficientMemoryError: with ``batch_size="auto"``, not even one copy fits.
         """
         from sim_core.optim.actions import check_actions
-        from sim_core.tasks.rollout import rollout_population
 
         seqs = [self.task.check_actions(check_actions(a, self.horizon, self.task.action_dim)) for a in actions]
         if params is not None:
@@ -157,12 +164,32 @@ class BatchedEvaluator:
         size = self._chunk_size(seqs, plist)
         results = []
         for start in range(0, len(seqs), size):
-            results += rollout_population(self.task, seqs[start:start + size], plist[start:start + size],
-                                          solver_config=self.solver_config)
+            results += self._rollout(seqs[start:start + size], plist[start:start + size]).run()
         return [episode_result(r, self.horizon) for r in results]
 
+    def _rollout(self, seqs: list[np.ndarray], plist: list[dict]):
+        """The :class:`~sim_core.tasks.rollout.PopulationRollout` of one batch, ready to run: the resident
+        batch of these parameter values restarted with ``seqs``, else a new batch (kept)."""
+        from sim_core.tasks.rollout import PopulationRollout
+
+        values = tuple(tuple(sorted(p.items())) for p in plist)
+        kept = self._resident.get(len(seqs))
+        if kept is not None and kept[0] == values:
+            kept[1].restart(seqs)
+            return kept[1]
+        self._resident.pop(len(seqs), None)  # a batch of other values (an inverse task's) released before the build
+        rollout = PopulationRollout(self.task, seqs, plist, solver_config=self.solver_config)
+        self._resident[len(seqs)] = (values, rollout)
+        return rollout
+
+    def release(self) -> None:
+        """Drop the resident batches (their host and device memory), e.g. before a gradient phase builds its own
+        batch; the next call builds a batch again."""
+        self._resident.clear()
+
     def close(self) -> None:
-        """Nothing to release."""
+        """Release the resident batches (:meth:`release`)."""
+        self.release()
 
 
 def episode_result(r, horizon: int) -> EpisodeResult:

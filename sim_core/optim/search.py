@@ -171,13 +171,22 @@ class ActionSpace:
         d = self.decoder
         return np.clip(np.asarray(y).reshape(d.horizon, d.action_dim) * d.units, d.low, d.high)
 
+    def _leave_cma(self) -> None:
+        """The CMA-ES populations' resident batch released (a batched evaluator's), so that the gradient phase's
+        episode or batch does not share the device with it."""
+        release = getattr(self.evaluator, "release", None)
+        if release is not None:
+            release()
+
     def gd_gradient(self, y):
+        self._leave_cma()
         if self.episode is None:
             self.episode = Episode(self.task, self.decoder.horizon, self.params, self.solver_config)
         res, da, _ = self.episode.reward_gradient(self.actions(y))
         return res.summary(), (da * self.decoder.units).reshape(-1)
 
     def gd_gradients(self, ys):
+        self._leave_cma()
         if self.batched_gradients is None:
             from sim_core.optim.batch_gradient import BatchedEpisodeGradients
 

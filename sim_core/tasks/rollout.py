@@ -346,7 +346,9 @@ def rollout_population(task: TaskSpec, actions: Sequence[np.ndarray],
 
 class PopulationRollout:
     """The batch of one :func:`rollout_population` call, built and then run (:meth:`run`); kept as an
-    object so that a benchmark can read the batch's memory after the run.
+    object so that a benchmark can read the batch's memory after the run, and so that an optimiser can
+    run the next population's actions on the same batch (:meth:`restart`: no copy, stacked model or
+    lockstep solver built again, its kernels and device arrays kept).
 
     Args: as :func:`rollout_population`.
 
@@ -363,12 +365,8 @@ class PopulationRollout:
                  params: Sequence[Mapping[str, float] | None] | Mapping[str, float] | None = None, *,
                  backend: str = "numpy", keep_states: bool = False, solver_config: SolverConfig | None = None,
                  clip: bool = False) -> None:
-        arrays = []
-        for i, a in enumerate(actions):
-            try:
-                arrays.append(_checked_actions(task, a, clip))
-            except ConfigError as err:
-                raise ConfigError(f"population member {i}: {err}") from err
+        self.task, self.clip = task, clip
+        arrays = self._checked(actions)
         B = len(arrays)
         if params is None or isinstance(params, Mapping):
             plist = [params] * B
@@ -381,6 +379,41 @@ class PopulationRollout:
         scene_model = build_task_scene(copy.deepcopy(task.scene)) if B > 1 else None  # built once, copied per member
         self.episodes = [TaskEpisode(task, p, backend, solver_config, scene_model) for p in plist]
         self.batch = BatchedSimulation([ep.sim for ep in self.episodes], finite_check=False) if B else None
+
+    def _checked(self, actions: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Each member's actions validated (:func:`_checked_actions`), the error naming the member."""
+        arrays = []
+        for i, a in enumerate(actions):
+            try:
+                arrays.append(_checked_actions(self.task, a, self.clip))
+            except ConfigError as err:
+                raise ConfigError(f"population member {i}: {err}") from err
+        return arrays
+
+    def restart(self, actions: Sequence[np.ndarray]) -> None:
+        """Every member back to the task's initial state with new actions, for the next :meth:`run` on the
+        same batch: one batched reset (:meth:`BatchedSimulation.reset`: failures cleared; in lockstep the
+        stacked state dropped and the stacked solver's step-to-step caches cleared at the next step, as a
+        copy's :meth:`Simulation.reset` clears its solver's), then each episode's initial state and
+        commanded targets. The members' results are then those of a new :class:`PopulationRollout` of
+        ``actions`` with the same parameters (bit for bit: the same steps from the same states and caches).
+
+        Args:
+            actions: per member, action rows of shape ``(k_i, action_dim)``, ``k_i <= horizon``; as many
+                members as the batch has.
+
+        Raises:
+            ConfigError: bad actions (naming the member), or another number of members than the batch's.
+        """
+        arrays = self._checked(actions)
+        if len(arrays) != len(self.episodes):
+            raise ConfigError(f"population restart: {len(arrays)} action sequences for a batch of "
+                              f"{len(self.episodes)} members")
+        self.actions = arrays
+        if self.batch is not None:
+            self.batch.reset()
+        for ep in self.episodes:
+            ep._start()  # the initial state of the task (not the model's rest state that Simulation.reset set)
 
     def run(self, step: Callable[..., BatchStep] | None = None) -> list[RolloutResult]:
         """Step every member through its actions (once); one :class:`RolloutResult` per member.

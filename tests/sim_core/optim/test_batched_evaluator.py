@@ -14,6 +14,7 @@ from sim_core.optim.evaluators import BatchedEvaluator, SerialEvaluator, make_ev
 from sim_core.optim.search import ActionSpace, new_state, optimise
 from sim_core.solver_config import SolverConfig
 from tests.sim_core.optim.task_support import folding_task
+from tests.support.emulated_cuda import emulate_cuda
 
 
 TIGHT = SolverConfig(dt_halvings_on_failure=0, tol_velocity=1e-7)
@@ -70,17 +71,54 @@ def _population(task, n: int, seed: int = 5):
 
 
 def _record_chunks(monkeypatch) -> list[int]:
-    """Sizes of the batches the evaluator rolls out (sim_core.tasks.rollout.rollout_population calls)."""
-    import sim_core.tasks.rollout as rollout
+    """Sizes of the batches the evaluator rolls out (its ``_rollout`` calls: not the size probes' batches)."""
+    sizes, real = [], BatchedEvaluator._rollout
 
-    sizes, real = [], rollout.rollout_population
+    def spy(self, seqs, *args, **kwargs):
+        sizes.append(len(seqs))
+        return real(self, seqs, *args, **kwargs)
 
-    def spy(task, actions, *args, **kwargs):
-        sizes.append(len(actions))
-        return real(task, actions, *args, **kwargs)
-
-    monkeypatch.setattr(rollout, "rollout_population", spy)
+    monkeypatch.setattr(BatchedEvaluator, "_rollout", spy)
     return sizes
+
+
+@pytest.mark.parametrize("path", ["numpy", "numpy sequential", "taichi-cpu", "cuda emulated"])
+def test_resident_batch_gives_each_population_the_results_of_separate_rollouts(monkeypatch, path):
+    """The batch built for the first population is restarted for the next ones (one build, one stacked
+    solver): each population's episodes equal, bit for bit, those of a batch built for it alone, and the
+    separate (serial) rollouts to the Newton tolerance; the first population again gives its first results.
+    On NumPy (in lockstep, and copy after copy: each copy's own solver caches cleared), on taichi-cpu and on CUDA's
+    paths (device line search, CG, friction rows; emulated on the CPU arch)."""
+    import dataclasses
+
+    import sim_core.batch.lockstep as lockstep
+    from tests.support.counting import counting
+
+    task = folding_task(horizon=2)
+    first_actions, next_actions = _population(task, 3, seed=5), _population(task, 3, seed=6)
+    config = dataclasses.replace(TIGHT, backend="numpy" if path.startswith("numpy") else "taichi-cpu")
+    lockstep_batch = path != "numpy sequential"
+    if path == "cuda emulated":  # the modules loaded (a first batch and episode run), then their arch queries
+        BatchedEvaluator(task, solver_config=config).evaluate(first_actions[:2])
+        SerialEvaluator(task, solver_config=config).evaluate(first_actions[:1])
+        emulate_cuda(monkeypatch)
+    solvers = counting(monkeypatch, lockstep, "LockstepSolver")
+    evaluator = BatchedEvaluator(task, solver_config=config, lockstep=lockstep_batch)
+    first = evaluator.evaluate(first_actions)
+    later = evaluator.evaluate(next_actions)
+    again = evaluator.evaluate(first_actions)
+    assert len(solvers) == int(lockstep_batch)  # one batch, restarted twice
+    alone = BatchedEvaluator(task, solver_config=config, lockstep=lockstep_batch).evaluate(next_actions)
+    assert len(solvers) == 2 * int(lockstep_batch)
+    fields = lambda results: [(r.reward, r.steps_done, r.infeasible, r.wrench_peak_N) for r in results]
+    assert fields(later) == fields(alone)
+    assert fields(again) == fields(first)
+    serial = SerialEvaluator(task, solver_config=config).evaluate(next_actions)
+    assert [r.reward for r in later] == pytest.approx([r.reward for r in serial], rel=1e-6)
+    assert [r.steps_done for r in later] == [r.steps_done for r in serial] == [2, 2, 2]
+    assert len({r.reward for r in later} | {r.reward for r in first}) == 6  # the populations differ
+    with pytest.raises(ConfigError, match="2 action sequences for a batch of 3"):
+        evaluator._resident[3][1].restart(next_actions[:2])
 
 
 def test_chunked_population_matches_one_batch(monkeypatch):
@@ -135,3 +173,18 @@ def test_auto_batch_size_measured_on_this_host():
     got = evaluator.evaluate(actions)
     assert evaluator.sizing.B >= 1 and evaluator.sizing.per_copy_bytes["host"] > 0
     assert len(got) == 2 and all(g.steps_done == 2 for g in got)
+
+
+def test_gradient_phase_releases_the_resident_batch():
+    """A hybrid search's gradient phase does not keep the CMA-ES populations' batch: the first gradient drops it,
+    and a later population builds a batch again with the same results."""
+    task = folding_task(horizon=2)
+    decoder = ControlPointDecoder.for_task(task, control_points=1)
+    evaluator = BatchedEvaluator(task, solver_config=TIGHT)
+    space = ActionSpace(decoder, evaluator, task)
+    points = [np.full(decoder.dim, 0.3), np.full(decoder.dim, -0.2)]
+    first = space.cma_evaluate(points)
+    assert list(evaluator._resident) == [2]
+    res, grad = space.gd_gradient(np.zeros(decoder.horizon * task.action_dim))
+    assert evaluator._resident == {} and np.all(np.isfinite(grad)) and np.any(grad != 0.0)
+    assert [r.reward for r in space.cma_evaluate(points)] == [r.reward for r in first]

@@ -13,6 +13,7 @@ import pytest
 
 from tests.sim_core.ti_kernels.conftest import TEST_ARCH
 from tests.sim_core.ti_kernels.test_contact_setup import _batch, _forming_contact
+from tests.support.emulated_cuda import emulate_cuda
 
 
 def _device(a: np.ndarray):
@@ -114,20 +115,6 @@ def test_device_rows_evaluate_as_the_reference(ti_cpu, scale):
     np.testing.assert_allclose(g2.to_numpy(), ref.gradient(x), rtol=0, atol=2e-12 * scale_g)
 
 
-def _emulate_cuda(monkeypatch) -> None:
-    """Every loaded sim_core module's arch query answers "cuda" (the CUDA paths, emulated on the CPU arch), the byte
-    copies' excepted (they copy host memory on the CPU arch: ``benchmarks/emulated_cuda.py``)."""
-    import sys
-
-    from sim_core import ti_backend
-    from sim_core.ti_kernels import device_copy
-
-    for name, module in list(sys.modules.items()):
-        if name.startswith("sim_core") and module is not device_copy \
-                and getattr(module, "current_arch", None) is ti_backend.current_arch:
-            monkeypatch.setattr(module, "current_arch", lambda: "cuda")
-
-
 @pytest.mark.skipif(TEST_ARCH != "cpu", reason="emulates the CUDA paths on the CPU arch")
 def test_contact_set_builds_the_friction_rows_on_the_device_path(ti_cpu, monkeypatch):
     """On CUDA's path the contact set's friction of a pressed Forming state is a DeviceLaggedFriction whose rows, row
@@ -137,7 +124,7 @@ def test_contact_set_builds_the_friction_rows_on_the_device_path(ti_cpu, monkeyp
     results = []
     for emulated in (False, True):
         if emulated:
-            _emulate_cuda(monkeypatch)
+            emulate_cuda(monkeypatch)
         contact, x = _forming_contact("taichi-cpu")
         x_n = x + 0.4 * contact.eps * np.random.default_rng(7).normal(size=x.shape)
         x_n.flags.writeable = False
@@ -183,7 +170,7 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
     built = []
     original = device_rows.friction_on_device
     monkeypatch.setattr(device_rows, "friction_on_device", lambda *a: built.append(original(*a)) or built[-1])
-    _emulate_cuda(monkeypatch)
+    emulate_cuda(monkeypatch)
     tol = SolverConfig().tol_velocity * 0.005
     for k in range(steps):
         res = run.batch.step([Control(effector_pose_target={effector: t[k]}) for t in run.targets])
