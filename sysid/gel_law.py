@@ -6,16 +6,21 @@ second order in the strain: Stable Neo-Hookean (the default) keeps a sheared lay
 law (Saint Venant-Kirchhoff, :mod:`sim_core.energies.green_strain`) thins it and softens in compression, so a pressed
 gel sinks further once it slides (docs/known_answers.md, "The slide's depth gap is the gel's law").
 
-**Each law at its own fitted values.** The laws' difference trades against the gel modulus (a softer law looks like
-a softer gel at small strain), so a comparison at one shared modulus, the start's, follows the start where the
-recording barely parts the laws: this simulator's shallow press made with the default law chose the Green-strain
+**Each law at its own fitted values, after one step.** The laws' difference trades against the gel modulus (a softer
+law looks like a softer gel at small strain), so a comparison at one shared modulus, the start's, follows the start where
+the recording barely parts the laws: this simulator's shallow press made with the default law chose the Green-strain
 law from a start x1.3 / x2 its modulus (delta-BIC 21 / 64, docs/benchmarks_log.md, session 53 "49law"). Each law's
-modulus, friction and stick speed (:data:`PROFILED`) are therefore fitted first (:func:`sysid.fit.fit`, tangent
-Jacobian, at most :data:`PROFILE_REPLAYS` replays a law, the other parameters at ``values``), through the effector's
-drive fitted from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor gains (force gain,
-marker scales, camera) refitted in closed form at every replay within their prior
+modulus, friction and stick speed (:data:`PROFILED`) are therefore moved to that law's own values first, by one
+Levenberg-Marquardt step (:func:`damped_step`, at most :data:`STEP_RADIUS` in each search coordinate) on the tangents
+of one replay at ``values`` (:meth:`sysid.jacobians.SensitivityJacobian.joint`), confirmed by one plain replay at the
+stepped values; the law's cost is the smaller of the two replays'. Session 54 fitted each law to convergence (up to
+five replays with tangents a law: 185-260 CPU s on nominal_s101, more than the rest of a diagnosis); a step costs
+one replay with tangents and one without a law (docs/benchmarks_log.md, session 55 "49law"). Every replay goes
+through the effector's drive fitted from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor
+gains (force gain, marker scales, camera) refitted in closed form within their prior
 (:class:`sysid.gain_profile.GainProfile`), on the tactile channels only. The laws have the same number of
-parameters, so the difference of their Bayesian information criteria is the difference of their whitened sums of squares (``-2 log L`` up to a constant shared by both).
+parameters, so the difference of their Bayesian information criteria is the difference of their whitened sums of
+squares (``-2 log L`` up to a constant shared by both).
 
 **The margin from the null.** Let ``R`` be the reference law (the scene's) and ``A`` the other, ``e`` the whitened
 residual of ``R`` and ``g = r_R - r_A`` the whitened difference of the two laws' fitted predictions. Where ``R`` made
@@ -39,13 +44,15 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from sim_core.errors import CalibrationError
 from sim_core.scenes.tactile_scene import SIMULATION_KEYS
 from sysid.calibration import whitened_rms
 from sysid.covariance import andrews_bandwidth, bin_scores, hac_meat, residual_bin_s, residual_times_s, time_bins
 from sysid.drive_calibration import fit_drive
-from sysid.fit import FIRST_STEP, fit
+from sysid.fit import FitProblem, parameter_spec
 from sysid.gain_prior import GainPrior
 from sysid.gain_profile import GainProfile
+from sysid.jacobians import make_jacobian
 from sysid.observation import ObservationModel, scene_dict_for
 
 GEL_LAWS: tuple[str, ...] = ("stable_neohookean", "green_strain")
@@ -65,11 +72,11 @@ both x0.7 this simulator's Green-strain press-slide fitted with the modulus alon
 truth and could not part the laws); the lagged friction's stick speed, which the calibration fits too (on
 nominal_s101 at the scene's 10 mm/s both laws stay at whitened RMS 4.4-6.6, fitted to 3.4-3.5 mm/s 1.9-2.5)."""
 
-PROFILE_REPLAYS = 5
-"""Replay budget of each law's fit of :data:`PROFILED` (the start's replay, with tangents, included; the fit's stops
-end it earlier where it has converged). On nominal_s101 from the +30 % start three replays left the default law's fit
-short of its valley (whitened sum of squares 752,212 against 561,846 from -30 %; five replays: 490,446), and the
-choice then followed the start (docs/benchmarks_log.md, session 54)."""
+STEP_RADIUS = 1.0
+"""Largest change of each :data:`PROFILED` search coordinate (log units: a factor e = 2.7) in a law's one step
+(:func:`damped_step`): wide enough that a start x2 or x0.5 the law's values reaches them in one Gauss-Newton step
+(ln 2 = 0.69), narrow enough that a step the tangents mispredict stays where the confirming replay still follows the
+recording. A step that raises the cost is not taken (the law's cost is the start's)."""
 
 NULL_SIGMAS = 2.0
 """The other law replaces the reference law only where its delta-BIC exceeds this many standard deviations of the
@@ -83,14 +90,14 @@ class GelLawChoice:
     Attributes:
         chosen: the law the recording is replayed with: the other law where it is better by more than the margin,
             else the reference law.
-        cost: law -> whitened sum of squares over :attr:`channels` at the law's fitted values (noise units squared,
+        cost: law -> whitened sum of squares over :attr:`channels` at the law's stepped values (noise units squared,
             summed over samples).
         rms: law -> channel -> whitened RMS at the law's fitted values.
         margin: the runner-up's cost minus the best law's (the delta-BIC in the best law's favour; equal parameter
             counts).
         channels: the compared channels.
         reference: the law kept unless the data reject it (the scene's).
-        fitted: law -> its fitted :data:`PROFILED` values (empty where nothing was fitted).
+        fitted: law -> its :data:`PROFILED` values after its step (empty where nothing was stepped).
         gains: law -> the sensor gains its fitted replay asked for before their prior bounded them (``force_gain``,
             ``marker_scale_xy``, ``marker_scale_z``, ...; empty without ``gain_prior``).
         null_sd: standard deviation of the reference's delta-BIC under the null (module docstring); NaN where the
@@ -160,24 +167,89 @@ def _residual_times(model: ObservationModel, channels: Sequence[str]) -> np.ndar
     return residual_times_s(stamps, {ch: int(np.asarray(model.data(ch)).size) for ch in channels}, channels)
 
 
+def damped_step(J: np.ndarray, r: np.ndarray, radius: float, lb: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Levenberg-Marquardt step of the whitened residual ``r`` ``(m,)`` with Jacobian ``J`` ``(m, p)``: the
+    Gauss-Newton step ``-(J^T J)^-1 J^T r`` where no coordinate moves more than ``radius``, else
+    ``-(J^T J + lam D)^-1 J^T r`` (``D`` the diagonal of ``J^T J``, Marquardt's scaling) with the smallest ``lam`` that
+    keeps every coordinate within ``radius`` (bisected in ``log lam``); then clipped to the bounds ``lb <= step <=
+    ub`` ``(p,)`` (the start at ``u = 0``). A column that is not finite (a parameter without tangents) stays at zero.
+
+    Returns:
+        the step ``(p,)``, search-coordinate units.
+    """
+    J = np.asarray(J, dtype=float)
+    r = np.asarray(r, dtype=float)
+    step = np.zeros(J.shape[1])
+    seen = np.all(np.isfinite(J), axis=0) & np.any(J != 0.0, axis=0)
+    if not seen.any():
+        return step
+    A, g = J[:, seen].T @ J[:, seen], J[:, seen].T @ r
+    D = np.diag(np.maximum(np.diag(A), 1e-12 * float(np.max(np.diag(A)))))
+
+    def solve(lam: float) -> np.ndarray:
+        return np.linalg.lstsq(A + lam * D, -g, rcond=None)[0]
+
+    s = solve(0.0)
+    if float(np.max(np.abs(s))) > radius:
+        lo, hi = -12.0, 12.0  # log10 lam: at 1e12 the step is the gradient's, 1e-12 of it
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if float(np.max(np.abs(solve(10.0 ** mid)))) > radius else (lo, mid)
+        s = solve(10.0 ** hi)
+    step[seen] = s
+    return np.clip(step, lb, ub)
+
+
+def one_step(model: ObservationModel, names: Sequence[str], start: Mapping[str, float],
+             radius: float = STEP_RADIUS) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+    """``(values, prediction)`` of ``model`` after one Levenberg-Marquardt step (:func:`damped_step`) of the
+    parameters ``names`` from ``start`` (a missing name: the model's value): one replay with tangents at the start
+    (:class:`sysid.fit.FitProblem` with the sensitivity provider's joint replay), one plain replay at the stepped
+    values; the better of the two (smaller whitened sum of squares; the start where the step's replay diverged).
+
+    Raises:
+        CalibrationError: the replay at the start diverged.
+    """
+    specs = [parameter_spec(n, float(start[n]) if n in start else model.parameter_value(n)) for n in names]
+    provider = make_jacobian("auto")
+    problem = FitProblem(model, specs, joint=getattr(provider, "joint", None))
+    try:
+        u0 = np.zeros(len(specs))
+        r0 = problem.residual(u0, phase="initial")
+        if r0 is None:
+            raise CalibrationError(f"the replay diverged at the start values {problem.values(u0)}: "
+                                   f"{problem.last_failure} (try a smaller --dt)")
+        J = problem.cached_jacobian(u0)
+        if J is None:  # no tangents (finite differences' provider): its columns, a replay each
+            J = provider(problem, u0)
+        lb, ub = problem.bounds
+        u1 = damped_step(J, r0, radius, lb, ub)
+        if np.any(u1 != 0.0):
+            problem.residual(u1, phase="final")  # a plain replay: a step's end needs no tangents
+        prediction = problem.best_prediction()
+        return problem.values(problem.best[1]), prediction
+    finally:
+        problem.close()
+
+
 def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01, t_max: float | None = None,
                    values: Mapping[str, float] | None = None, channels: Sequence[str] = TACTILE,
                    arch: str = "cpu", simulation: Mapping[str, Any] | None = None,
-                   profile: Sequence[str] = PROFILED, max_replays: int = PROFILE_REPLAYS,
+                   profile: Sequence[str] = PROFILED, step_radius: float = STEP_RADIUS,
                    null_sigmas: float = NULL_SIGMAS, gain_prior: GainPrior | None = GainPrior()) -> GelLawChoice:
-    """Fit each gel law's :data:`PROFILED` values to ``evidence`` and choose the law (module docstring).
+    """Step each gel law's :data:`PROFILED` values towards ``evidence`` and choose the law (module docstring).
 
     Args:
         evidence: a loaded recording (:func:`sysid.evidence.load_evidence`) of a tactile scene.
         laws: ``simulation.gel_element`` names to compare (exactly two); the scene's law (``simulation.gel_element``,
             else the default) is the reference where it is among them, else the first.
         dt, t_max, arch: the replays' step (s), end (s; None: the recording's) and elastic backend.
-        values: parameter values of every replay, and the start of each law's fit (None: the scene's).
+        values: parameter values of every replay, and the start of each law's step (None: the scene's).
         channels: the compared channels; those the recording lacks are skipped.
         simulation: other overrides of the scene's ``simulation:`` block for every replay (e.g. ``gel_resolution``).
-        profile: parameters fitted per law before the comparison, those the scene has (empty: each law replayed
+        profile: parameters stepped per law before the comparison, those the scene has (empty: each law replayed
             once at ``values``).
-        max_replays: replay budget of each law's fit.
+        step_radius: largest change of each search coordinate in a law's step (:data:`STEP_RADIUS`).
         null_sigmas: the margin in standard deviations of the delta-BIC under the null (0: the smaller cost wins).
         gain_prior: the sensor gains refitted in closed form to every replay within this prior
             (:class:`sysid.gain_profile.GainProfile`); None: the scene's sensor calibration.
@@ -188,7 +260,7 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
     Raises:
         ValueError: not two laws, or none of ``channels`` in the recording.
         ConfigError: an unknown law (the scene's check names it) or parameter.
-        CalibrationError: a replay that diverged at the start of a law's fit.
+        CalibrationError: a law's replay that diverged at ``values``.
     """
     if len(laws) != 2:
         raise ValueError(f"choose_gel_law: compare two gel laws, got {list(laws)}")
@@ -217,10 +289,8 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
             model.set_nominal(held)
         fitted_names = [n for n in profile if n in model.simulation().parameter_names]
         if fitted_names:
-            result = fit(model, fitted_names, initial={n: values[n] for n in fitted_names if n in values},
-                         max_replays=max_replays, robust=None, first_step=FIRST_STEP)
-            fitted[law] = dict(result.values)
-            prediction = result.prediction_final
+            fitted[law], prediction = one_step(model, fitted_names, {n: values[n] for n in fitted_names if n in values},
+                                               step_radius)
         else:
             prediction = model.predict(model.simulate(values))
         found = None if model.gain_profile is None else model.gain_profile.calibration_of(prediction)
