@@ -72,7 +72,7 @@ both x0.7 this simulator's Green-strain press-slide fitted with the modulus alon
 truth and could not part the laws); the lagged friction's stick speed, which the calibration fits too (on
 nominal_s101 at the scene's 10 mm/s both laws stay at whitened RMS 4.4-6.6, fitted to 3.4-3.5 mm/s 1.9-2.5)."""
 
-STEP_RADIUS = 1.0
+STEP_RADIUS = 1.5
 """Largest change of each :data:`PROFILED` search coordinate (log units: a factor e = 2.7) in a law's one step
 (:func:`damped_step`): wide enough that a start x2 or x0.5 the law's values reaches them in one Gauss-Newton step
 (ln 2 = 0.69), narrow enough that a step the tangents mispredict stays where the confirming replay still follows the
@@ -100,6 +100,8 @@ class GelLawChoice:
         fitted: law -> its :data:`PROFILED` values after its step (empty where nothing was stepped).
         gains: law -> the sensor gains its fitted replay asked for before their prior bounded them (``force_gain``,
             ``marker_scale_xy``, ``marker_scale_z``, ...; empty without ``gain_prior``).
+        steps: law -> whitened sums of squares of its replays in turn (:func:`one_step`: the start, the step, half
+            the step where the step raised the cost).
         null_sd: standard deviation of the reference's delta-BIC under the null (module docstring); NaN where the
             reference law is the best (no change to test).
         decided: False where the best law is not the reference but its delta-BIC is within ``NULL_SIGMAS * null_sd``
@@ -116,6 +118,7 @@ class GelLawChoice:
     null_sd: float = math.nan
     decided: bool = True
     gains: dict[str, dict[str, float]] | None = None
+    steps: dict[str, list[float]] | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready: the chosen law, the margin and its null spread, each law's cost, fitted values and whitened
@@ -124,6 +127,7 @@ class GelLawChoice:
                 "null_sd": None if math.isnan(self.null_sd) else self.null_sd, "decided": self.decided,
                 "cost": dict(self.cost), "fitted": {law: dict(v) for law, v in (self.fitted or {}).items()},
                 "gains_asked": {law: dict(v) for law, v in (self.gains or {}).items()},
+                "step_costs": {law: list(v) for law, v in (self.steps or {}).items()},
                 "whitened_rms": {law: dict(r) for law, r in self.rms.items()}, "channels": list(self.channels)}
 
 
@@ -201,11 +205,12 @@ def damped_step(J: np.ndarray, r: np.ndarray, radius: float, lb: np.ndarray, ub:
 
 
 def one_step(model: ObservationModel, names: Sequence[str], start: Mapping[str, float],
-             radius: float = STEP_RADIUS) -> tuple[dict[str, float], dict[str, np.ndarray]]:
-    """``(values, prediction)`` of ``model`` after one Levenberg-Marquardt step (:func:`damped_step`) of the
+             radius: float = STEP_RADIUS) -> tuple[dict[str, float], dict[str, np.ndarray], list[float]]:
+    """``(values, prediction, costs)`` of ``model`` after one Levenberg-Marquardt step (:func:`damped_step`) of the
     parameters ``names`` from ``start`` (a missing name: the model's value): one replay with tangents at the start
     (:class:`sysid.fit.FitProblem` with the sensitivity provider's joint replay), one plain replay at the stepped
-    values; the better of the two (smaller whitened sum of squares; the start where the step's replay diverged).
+    values, and one at half the step only where the step raised the cost or diverged; ``values`` and ``prediction``
+    of the best replay, ``costs`` the whitened sums of squares of the replays in turn (inf: diverged).
 
     Raises:
         CalibrationError: the replay at the start diverged.
@@ -224,10 +229,16 @@ def one_step(model: ObservationModel, names: Sequence[str], start: Mapping[str, 
             J = provider(problem, u0)
         lb, ub = problem.bounds
         u1 = damped_step(J, r0, radius, lb, ub)
-        if np.any(u1 != 0.0):
-            problem.residual(u1, phase="final")  # a plain replay: a step's end needs no tangents
+        for _ in range(2):  # the step, then half of it where the step raised the cost (the tangents' model overshot)
+            if not np.any(u1 != 0.0):
+                break
+            r1 = problem.residual(u1, phase="final")  # a plain replay: a step's end needs no tangents
+            if r1 is not None and float(r1 @ r1) < float(r0 @ r0):
+                break
+            u1 = 0.5 * u1
+        costs = [2.0 * e.cost for e in problem.history]
         prediction = problem.best_prediction()
-        return problem.values(problem.best[1]), prediction
+        return problem.values(problem.best[1]), prediction, costs
     finally:
         problem.close()
 
@@ -270,6 +281,7 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
     fitted: dict[str, dict[str, float]] = {}
     residual: dict[str, np.ndarray] = {}
     gains: dict[str, dict[str, float]] = {}
+    steps: dict[str, list[float]] = {}
     present = [ch for ch in channels if ch in evidence.channels_present]
     if not present:
         raise ValueError(f"choose_gel_law: the recording has none of the channels {list(channels)}")
@@ -289,8 +301,8 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
             model.set_nominal(held)
         fitted_names = [n for n in profile if n in model.simulation().parameter_names]
         if fitted_names:
-            fitted[law], prediction = one_step(model, fitted_names, {n: values[n] for n in fitted_names if n in values},
-                                               step_radius)
+            fitted[law], prediction, steps[law] = one_step(
+                model, fitted_names, {n: values[n] for n in fitted_names if n in values}, step_radius)
         else:
             prediction = model.predict(model.simulate(values))
         found = None if model.gain_profile is None else model.gain_profile.calibration_of(prediction)
@@ -309,4 +321,4 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
         decided = margin > null_sigmas * null_sd
     return GelLawChoice(chosen=other if ranked[0] == other and decided else reference, cost=cost, rms=rms,
                         margin=margin, channels=tuple(present), reference=reference, fitted=fitted,
-                        null_sd=null_sd, decided=decided, gains=gains)
+                        null_sd=null_sd, decided=decided, gains=gains, steps=steps)
