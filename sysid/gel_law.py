@@ -72,6 +72,10 @@ both x0.7 this simulator's Green-strain press-slide fitted with the modulus alon
 truth and could not part the laws); the lagged friction's stick speed, which the calibration fits too (on
 nominal_s101 at the scene's 10 mm/s both laws stay at whitened RMS 4.4-6.6, fitted to 3.4-3.5 mm/s 1.9-2.5)."""
 
+STEPS = 2
+"""Levenberg-Marquardt steps of each law before the comparison (:func:`law_steps`: a replay with tangents a step,
+a plain replay at the last step's end)."""
+
 STEP_RADIUS = 1.5
 """Largest change of each :data:`PROFILED` search coordinate (log units: a factor e = 2.7) in a law's one step
 (:func:`damped_step`): wide enough that a start x2 or x0.5 the law's values reaches them in one Gauss-Newton step
@@ -100,7 +104,7 @@ class GelLawChoice:
         fitted: law -> its :data:`PROFILED` values after its step (empty where nothing was stepped).
         gains: law -> the sensor gains its fitted replay asked for before their prior bounded them (``force_gain``,
             ``marker_scale_xy``, ``marker_scale_z``, ...; empty without ``gain_prior``).
-        steps: law -> whitened sums of squares of its replays in turn (:func:`one_step`: the start, the step, half
+        steps: law -> whitened sums of squares of its replays in turn (:func:`law_steps`: the start, the step, half
             the step where the step raised the cost).
         null_sd: standard deviation of the reference's delta-BIC under the null (module docstring); NaN where the
             reference law is the best (no change to test).
@@ -204,13 +208,14 @@ def damped_step(J: np.ndarray, r: np.ndarray, radius: float, lb: np.ndarray, ub:
     return np.clip(step, lb, ub)
 
 
-def one_step(model: ObservationModel, names: Sequence[str], start: Mapping[str, float],
-             radius: float = STEP_RADIUS) -> tuple[dict[str, float], dict[str, np.ndarray], list[float]]:
-    """``(values, prediction, costs)`` of ``model`` after one Levenberg-Marquardt step (:func:`damped_step`) of the
-    parameters ``names`` from ``start`` (a missing name: the model's value): one replay with tangents at the start
-    (:class:`sysid.fit.FitProblem` with the sensitivity provider's joint replay), one plain replay at the stepped
-    values, and one at half the step only where the step raised the cost or diverged; ``values`` and ``prediction``
-    of the best replay, ``costs`` the whitened sums of squares of the replays in turn (inf: diverged).
+def law_steps(model: ObservationModel, names: Sequence[str], start: Mapping[str, float], steps: int = STEPS,
+              radius: float = STEP_RADIUS) -> tuple[dict[str, float], dict[str, np.ndarray], list[float]]:
+    """``(values, prediction, costs)`` of ``model`` after ``steps`` Levenberg-Marquardt steps (:func:`damped_step`)
+    of the parameters ``names`` from ``start`` (a missing name: the model's value), each on the tangents of the
+    replay at its start (:class:`sysid.fit.FitProblem` with the sensitivity provider's joint replay), the last one's
+    end replayed without tangents. A step that raised the cost or diverged is halved once (one more replay) and
+    the steps end where the half did too. ``values`` and ``prediction`` of the best replay, ``costs`` the whitened
+    sums of squares of the replays in turn (inf: diverged).
 
     Raises:
         CalibrationError: the replay at the start diverged.
@@ -219,23 +224,27 @@ def one_step(model: ObservationModel, names: Sequence[str], start: Mapping[str, 
     provider = make_jacobian("auto")
     problem = FitProblem(model, specs, joint=getattr(provider, "joint", None))
     try:
-        u0 = np.zeros(len(specs))
-        r0 = problem.residual(u0, phase="initial")
-        if r0 is None:
-            raise CalibrationError(f"the replay diverged at the start values {problem.values(u0)}: "
+        u = np.zeros(len(specs))
+        r = problem.residual(u, phase="initial")
+        if r is None:
+            raise CalibrationError(f"the replay diverged at the start values {problem.values(u)}: "
                                    f"{problem.last_failure} (try a smaller --dt)")
-        J = problem.cached_jacobian(u0)
-        if J is None:  # no tangents (finite differences' provider): its columns, a replay each
-            J = provider(problem, u0)
         lb, ub = problem.bounds
-        u1 = damped_step(J, r0, radius, lb, ub)
-        for _ in range(2):  # the step, then half of it where the step raised the cost (the tangents' model overshot)
-            if not np.any(u1 != 0.0):
+        for k in range(steps):
+            J = problem.cached_jacobian(u)
+            if J is None:  # no tangents (finite differences' provider): its columns, a replay each
+                J = provider(problem, u)
+            step = damped_step(J, r, radius, lb - u, ub - u)
+            # the last step's end needs no tangents: a plain replay
+            phase = "final" if k == steps - 1 else "initial"
+            for _ in range(2):  # the step, then half of it where the step raised the cost (the tangents overshot)
+                trial = problem.residual(u + step, phase=phase) if np.any(step != 0.0) else None
+                if trial is not None and float(trial @ trial) < float(r @ r):
+                    break
+                step = 0.5 * step
+            else:
                 break
-            r1 = problem.residual(u1, phase="final")  # a plain replay: a step's end needs no tangents
-            if r1 is not None and float(r1 @ r1) < float(r0 @ r0):
-                break
-            u1 = 0.5 * u1
+            u, r = u + step, trial
         costs = [2.0 * e.cost for e in problem.history]
         prediction = problem.best_prediction()
         return problem.values(problem.best[1]), prediction, costs
@@ -246,7 +255,7 @@ def one_step(model: ObservationModel, names: Sequence[str], start: Mapping[str, 
 def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01, t_max: float | None = None,
                    values: Mapping[str, float] | None = None, channels: Sequence[str] = TACTILE,
                    arch: str = "cpu", simulation: Mapping[str, Any] | None = None,
-                   profile: Sequence[str] = PROFILED, step_radius: float = STEP_RADIUS,
+                   profile: Sequence[str] = PROFILED, n_steps: int = STEPS, step_radius: float = STEP_RADIUS,
                    null_sigmas: float = NULL_SIGMAS, gain_prior: GainPrior | None = GainPrior()) -> GelLawChoice:
     """Step each gel law's :data:`PROFILED` values towards ``evidence`` and choose the law (module docstring).
 
@@ -260,6 +269,7 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
         simulation: other overrides of the scene's ``simulation:`` block for every replay (e.g. ``gel_resolution``).
         profile: parameters stepped per law before the comparison, those the scene has (empty: each law replayed
             once at ``values``).
+        n_steps: Levenberg-Marquardt steps of each law (:data:`STEPS`).
         step_radius: largest change of each search coordinate in a law's step (:data:`STEP_RADIUS`).
         null_sigmas: the margin in standard deviations of the delta-BIC under the null (0: the smaller cost wins).
         gain_prior: the sensor gains refitted in closed form to every replay within this prior
@@ -301,8 +311,8 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
             model.set_nominal(held)
         fitted_names = [n for n in profile if n in model.simulation().parameter_names]
         if fitted_names:
-            fitted[law], prediction, steps[law] = one_step(
-                model, fitted_names, {n: values[n] for n in fitted_names if n in values}, step_radius)
+            fitted[law], prediction, steps[law] = law_steps(
+                model, fitted_names, {n: values[n] for n in fitted_names if n in values}, n_steps, step_radius)
         else:
             prediction = model.predict(model.simulate(values))
         found = None if model.gain_profile is None else model.gain_profile.calibration_of(prediction)
