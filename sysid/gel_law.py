@@ -6,16 +6,18 @@ second order in the strain: Stable Neo-Hookean (the default) keeps a sheared lay
 law (Saint Venant-Kirchhoff, :mod:`sim_core.energies.green_strain`) thins it and softens in compression, so a pressed
 gel sinks further once it slides (docs/known_answers.md, "The slide's depth gap is the gel's law").
 
-**Each law at its own fitted values, after one step.** The laws' difference trades against the gel modulus (a softer
+**Each law near its own fitted values, after two steps.** The laws' difference trades against the gel modulus (a softer
 law looks like a softer gel at small strain), so a comparison at one shared modulus, the start's, follows the start where
 the recording barely parts the laws: this simulator's shallow press made with the default law chose the Green-strain
 law from a start x1.3 / x2 its modulus (delta-BIC 21 / 64, docs/benchmarks_log.md, session 53 "49law"). Each law's
-modulus, friction and stick speed (:data:`PROFILED`) are therefore moved to that law's own values first, by one
-Levenberg-Marquardt step (:func:`damped_step`, at most :data:`STEP_RADIUS` in each search coordinate) on the tangents
-of one replay at ``values`` (:meth:`sysid.jacobians.SensitivityJacobian.joint`), confirmed by one plain replay at the
-stepped values; the law's cost is the smaller of the two replays'. Session 54 fitted each law to convergence (up to
-five replays with tangents a law: 185-260 CPU s on nominal_s101, more than the rest of a diagnosis); a step costs
-one replay with tangents and one without a law (docs/benchmarks_log.md, session 55 "49law"). Every replay goes
+modulus, friction and stick speed (:data:`PROFILED`) are therefore moved towards that law's own values first, by
+:data:`STEPS` Levenberg-Marquardt steps (:func:`law_steps`, :func:`damped_step`, at most :data:`STEP_RADIUS` in each
+search coordinate), each on the tangents of the replay at its start (:meth:`sysid.jacobians.SensitivityJacobian.joint`),
+the last step's end confirmed by a plain replay; the law's cost is the best replay's. Session 54 fitted each law to
+convergence (up to five replays with tangents a law: 185-260 CPU s on nominal_s101, more than the rest of a
+diagnosis); two steps cost two replays with tangents and one without a law, and reach the converged fits' costs on
+nominal_s101 within 1 % (docs/benchmarks_log.md, session 55 "49law"; one step from the scene's stick speed, 3.5x the
+recording's, left them 5-12 % above). Every replay goes
 through the effector's drive fitted from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor
 gains (force gain, marker scales, camera) refitted in closed form within their prior
 (:class:`sysid.gain_profile.GainProfile`), on the tactile channels only. The laws have the same number of
@@ -31,6 +33,13 @@ count of the samples would overstate the evidence), ``e`` estimated by the bette
 only where ``delta`` exceeds :data:`NULL_SIGMAS` times that spread (a one-sided test at about 2.3 % under the null; the
 residual of a model that does not follow the recording inflates ``e`` and so the margin: conservative). Otherwise
 the reference law is kept, and :attr:`GelLawChoice.decided` says so.
+
+**A law the sensor must bend to follow.** Each law's replay asks the sensor gains (force gain, marker scales) that
+follow the recording best; the prior bounds them (:mod:`sysid.gain_prior`, +-15 % by default). ``A`` also replaces
+``R`` only where it asks its gains no further outside their prior than ``R`` does (:func:`beyond_prior`): a law
+that fits only through a sensor gain a real cell's data sheet rules out (e.g. markers that move twice as deep as
+recorded) is not evidence for the law. (Session 53 measured the calibration's depth scale 0.39 / 0.40 under the
+Green-strain law on the deep presses stiction_s105 and gel_creep_s108 of the reference set.)
 
 This module reads a recording only through :mod:`sysid.evidence` and replays it through
 :class:`sysid.observation.ObservationModel`.
@@ -50,7 +59,7 @@ from sysid.calibration import whitened_rms
 from sysid.covariance import andrews_bandwidth, bin_scores, hac_meat, residual_bin_s, residual_times_s, time_bins
 from sysid.drive_calibration import fit_drive
 from sysid.fit import FitProblem, parameter_spec
-from sysid.gain_prior import GainPrior
+from sysid.gain_prior import PRIOR_OF, GainPrior
 from sysid.gain_profile import GainProfile
 from sysid.jacobians import make_jacobian
 from sysid.observation import ObservationModel, scene_dict_for
@@ -77,10 +86,13 @@ STEPS = 2
 a plain replay at the last step's end)."""
 
 STEP_RADIUS = 1.5
-"""Largest change of each :data:`PROFILED` search coordinate (log units: a factor e = 2.7) in a law's one step
-(:func:`damped_step`): wide enough that a start x2 or x0.5 the law's values reaches them in one Gauss-Newton step
-(ln 2 = 0.69), narrow enough that a step the tangents mispredict stays where the confirming replay still follows the
-recording. A step that raises the cost is not taken (the law's cost is the start's)."""
+"""Largest change of each :data:`PROFILED` search coordinate (log units: a factor 4.5) in a law's step
+(:func:`damped_step`): wide enough that the scene's stick speed (10 mm/s) reaches nominal_s101's 2.8 mm/s (ln 3.5 = 1.27)
+and a start x2 its values in one Gauss-Newton step, narrow enough that a step the tangents mispredict stays where the confirming replay still follows the
+recording. A step that raises the cost is halved once (:func:`law_steps`)."""
+
+CHECKED_GAINS = ("force_gain", "marker_scale_xy", "marker_scale_z")
+"""Sensor gains whose excursion outside their prior keeps the reference law (:func:`beyond_prior`)."""
 
 NULL_SIGMAS = 2.0
 """The other law replaces the reference law only where its delta-BIC exceeds this many standard deviations of the
@@ -106,10 +118,13 @@ class GelLawChoice:
             ``marker_scale_xy``, ``marker_scale_z``, ...; empty without ``gain_prior``).
         steps: law -> whitened sums of squares of its replays in turn (:func:`law_steps`: the start, the step, half
             the step where the step raised the cost).
+        beyond_prior: law -> how far its asked force gain or marker scales lie outside their prior
+            (:func:`beyond_prior`; filled where the other law is the best).
         null_sd: standard deviation of the reference's delta-BIC under the null (module docstring); NaN where the
             reference law is the best (no change to test).
         decided: False where the best law is not the reference but its delta-BIC is within ``NULL_SIGMAS * null_sd``
-            (the reference is kept: the recording does not part the laws).
+            (the reference is kept: the recording does not part the laws), or it asks its sensor gains further
+            outside their prior than the reference does (:attr:`beyond_prior`; module docstring).
     """
 
     chosen: str
@@ -123,6 +138,7 @@ class GelLawChoice:
     decided: bool = True
     gains: dict[str, dict[str, float]] | None = None
     steps: dict[str, list[float]] | None = None
+    beyond_prior: dict[str, float] | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready: the chosen law, the margin and its null spread, each law's cost, fitted values and whitened
@@ -132,6 +148,7 @@ class GelLawChoice:
                 "cost": dict(self.cost), "fitted": {law: dict(v) for law, v in (self.fitted or {}).items()},
                 "gains_asked": {law: dict(v) for law, v in (self.gains or {}).items()},
                 "step_costs": {law: list(v) for law, v in (self.steps or {}).items()},
+                "beyond_prior": dict(self.beyond_prior or {}),
                 "whitened_rms": {law: dict(r) for law, r in self.rms.items()}, "channels": list(self.channels)}
 
 
@@ -144,6 +161,17 @@ class _GainsFromRest(GainProfile):
         if self.model.marker_rest is None and "markers_xyz" in raw:
             self.model.marker_rest = np.asarray(raw["markers_xyz"][0], dtype=float)
         return super().__call__(raw)
+
+
+def beyond_prior(asked: Mapping[str, float], prior: GainPrior) -> float:
+    """How far the gains ``asked`` (:data:`CHECKED_GAINS`, relative to the scene's: 1 = the data sheet) lie outside
+    ``prior``: the largest distance of one past its bound (-), 0 where all lie inside."""
+    out = 0.0
+    for key in CHECKED_GAINS:
+        if key in asked:
+            lo, hi = prior.bounds(PRIOR_OF[key])
+            out = max(out, lo - float(asked[key]), float(asked[key]) - hi)
+    return out
 
 
 def _whitened(model: ObservationModel, prediction: Mapping[str, np.ndarray], channels: Sequence[str]) -> np.ndarray:
@@ -328,7 +356,10 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
     if ranked[0] == other:
         null_sd = null_spread(residual[other], residual[reference] - residual[other], _residual_times(model, present),
                               residual_bin_s(model))
-        decided = margin > null_sigmas * null_sd
+        beyond = {law: beyond_prior(gains.get(law, {}), gain_prior) for law in laws} if gain_prior else {}
+        decided = margin > null_sigmas * null_sd and beyond.get(other, 0.0) <= beyond.get(reference, 0.0)
+    else:
+        beyond = {}
     return GelLawChoice(chosen=other if ranked[0] == other and decided else reference, cost=cost, rms=rms,
                         margin=margin, channels=tuple(present), reference=reference, fitted=fitted,
-                        null_sd=null_sd, decided=decided, gains=gains, steps=steps)
+                        null_sd=null_sd, decided=decided, gains=gains, steps=steps, beyond_prior=beyond)
