@@ -152,3 +152,17 @@ def test_sysid_with_gel_element_auto_fits_with_the_law_the_recording_chooses(con
     assert reported["choice"]["delta_bic"] > 1000.0
     first = doc["metrics"]["rms_initial"]
     assert max(first[ch]["whitened_rms"] for ch in ("markers_xyz", "wrench")) < 1.5, first
+
+
+def test_a_law_asking_gains_outside_their_prior_is_measured_by_its_excursion():
+    """:func:`sysid.gel_law.beyond_prior`: 0 inside the prior (+-15 % by default, or a sensor's own width), else the
+    largest distance past a bound of the force gain or a marker scale (the focal lengths are absolute: not read)."""
+    from sysid.gain_prior import GainPrior
+    from sysid.gel_law import beyond_prior
+
+    inside = {"force_gain": 0.98, "marker_scale_xy": 1.149, "marker_scale_z": 1.03, "fx": 300.0}
+    assert beyond_prior(inside, GainPrior()) == 0.0
+    deep = {**inside, "marker_scale_z": 0.40}  # markers asked to move 2.5x less deep than the law replays them
+    assert beyond_prior(deep, GainPrior()) == pytest.approx(0.45)
+    assert beyond_prior(deep, GainPrior(marker_scale=0.7)) == 0.0
+    assert beyond_prior({**inside, "force_gain": 1.5}, GainPrior(force_gain=0.3)) == pytest.approx(0.2)
