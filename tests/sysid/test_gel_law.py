@@ -169,3 +169,24 @@ def test_a_law_asking_gains_outside_their_prior_is_measured_by_its_excursion():
     assert beyond_prior(deep, GainPrior()) == pytest.approx(0.45)
     assert beyond_prior(deep, GainPrior(marker_scale=0.7)) == 0.0
     assert beyond_prior({**inside, "force_gain": 1.5}, GainPrior(force_gain=0.3)) == pytest.approx(0.2)
+
+
+def test_the_damped_step_is_gauss_newtons_within_its_radius_and_shorter_beyond():
+    """:func:`sysid.gel_law.damped_step` on a linear residual ``r(u) = J u + r0``: inside the radius the Gauss-Newton
+    step (the exact minimiser), beyond it a Levenberg-Marquardt step whose largest coordinate is the radius and which
+    still lowers the cost; bounds clip it; a column without tangents (NaN) does not move."""
+    from sysid.gel_law import damped_step
+
+    rng = np.random.default_rng(5)
+    J = rng.standard_normal((50, 3)) * np.array([1.0, 10.0, 0.1])
+    u_true = np.array([0.3, -0.2, 0.5])
+    r0 = -J @ u_true
+    inf = np.full(3, np.inf)
+    assert damped_step(J, r0, 1.0, -inf, inf) == pytest.approx(u_true, abs=1e-9)
+    short = damped_step(J, r0, 0.25, -inf, inf)
+    assert np.max(np.abs(short)) == pytest.approx(0.25, rel=1e-6)
+    assert np.linalg.norm(J @ short + r0) < np.linalg.norm(r0)
+    assert damped_step(J, r0, 1.0, -inf, np.array([np.inf, np.inf, 0.1]))[2] == pytest.approx(0.1)
+    J_nan = J.copy()
+    J_nan[:, 1] = np.nan
+    assert damped_step(J_nan, r0, 1.0, -inf, inf)[1] == 0.0
