@@ -60,7 +60,7 @@ class FitOptions:
         gel_element: the gel's element and law in every replay, one of :data:`sim_core.elastic.SOLID_ELEMENTS`
             (``green_strain``: the Green-strain law of :mod:`sim_core.energies.green_strain`), or
             :data:`sysid.gel_law.AUTO_LAW` (the law the recording chooses, each law with its modulus, friction and
-            sensor gains fitted from the start, up to five replays a law; the scene's law is kept unless the other is
+            sensor gains moved from the start by one step, a replay with tangents and a plain one a law; the scene's law is kept unless the other is
             better beyond the comparison's spread under the null: :func:`sysid.gel_law.choose_gel_law`); None:
             the scene's. ``fit.json`` reports it (``diagnostics.gel_law``).
         arch: elastic terms of the replays: ``cpu`` / ``cuda`` (Taichi) or ``numpy``.
@@ -309,7 +309,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         warnings.simplefilter("always")
         evidence = load_evidence(bag, scene_path=options.scene, include_image="auto",
                                  recording_map=options.recording_map, t_start=options.t_start, t_end=options.t_end)
-        # auto: up to five replays per law here (it starts Taichi, so the calibration's secant probe is then not forked)
+        # auto: two replays per law here (it starts Taichi, so the calibration's secant probe is then not forked)
         law = None if options.gel_element != AUTO_LAW else choose_gel_law(
             evidence, dt=options.dt, t_max=options.t_max, arch=options.arch, simulation=simulation)
         if options.gel_element is not None:

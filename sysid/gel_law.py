@@ -6,16 +6,23 @@ second order in the strain: Stable Neo-Hookean (the default) keeps a sheared lay
 law (Saint Venant-Kirchhoff, :mod:`sim_core.energies.green_strain`) thins it and softens in compression, so a pressed
 gel sinks further once it slides (docs/known_answers.md, "The slide's depth gap is the gel's law").
 
-**Each law at its own fitted values.** The laws' difference trades against the gel modulus (a softer law looks like
-a softer gel at small strain), so a comparison at one shared modulus, the start's, follows the start where the
-recording barely parts the laws: this simulator's shallow press made with the default law chose the Green-strain
+**Each law near its own fitted values, after two steps.** The laws' difference trades against the gel modulus (a softer
+law looks like a softer gel at small strain), so a comparison at one shared modulus, the start's, follows the start where
+the recording barely parts the laws: this simulator's shallow press made with the default law chose the Green-strain
 law from a start x1.3 / x2 its modulus (delta-BIC 21 / 64, docs/benchmarks_log.md, session 53 "49law"). Each law's
-modulus, friction and stick speed (:data:`PROFILED`) are therefore fitted first (:func:`sysid.fit.fit`, tangent
-Jacobian, at most :data:`PROFILE_REPLAYS` replays a law, the other parameters at ``values``), through the effector's
-drive fitted from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor gains (force gain,
-marker scales, camera) refitted in closed form at every replay within their prior
+modulus, friction and stick speed (:data:`PROFILED`) are therefore moved towards that law's own values first, by
+:data:`STEPS` Levenberg-Marquardt steps (:func:`law_steps`, :func:`damped_step`, at most :data:`STEP_RADIUS` in each
+search coordinate), each on the tangents of the replay at its start (:meth:`sysid.jacobians.SensitivityJacobian.joint`),
+the last step's end confirmed by a plain replay; the law's cost is the best replay's. Session 54 fitted each law to
+convergence (up to five replays with tangents a law: 185-260 CPU s on nominal_s101, more than the rest of a
+diagnosis); two steps cost two replays with tangents and one without a law, and reach the converged fits' costs on
+nominal_s101 within 1 % (docs/benchmarks_log.md, session 55 "49law"; one step from the scene's stick speed, 3.5x the
+recording's, left them 5-12 % above). Every replay goes
+through the effector's drive fitted from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor
+gains (force gain, marker scales, camera) refitted in closed form within their prior
 (:class:`sysid.gain_profile.GainProfile`), on the tactile channels only. The laws have the same number of
-parameters, so the difference of their Bayesian information criteria is the difference of their whitened sums of squares (``-2 log L`` up to a constant shared by both).
+parameters, so the difference of their Bayesian information criteria is the difference of their whitened sums of
+squares (``-2 log L`` up to a constant shared by both).
 
 **The margin from the null.** Let ``R`` be the reference law (the scene's) and ``A`` the other, ``e`` the whitened
 residual of ``R`` and ``g = r_R - r_A`` the whitened difference of the two laws' fitted predictions. Where ``R`` made
@@ -26,6 +33,13 @@ count of the samples would overstate the evidence), ``e`` estimated by the bette
 only where ``delta`` exceeds :data:`NULL_SIGMAS` times that spread (a one-sided test at about 2.3 % under the null; the
 residual of a model that does not follow the recording inflates ``e`` and so the margin: conservative). Otherwise
 the reference law is kept, and :attr:`GelLawChoice.decided` says so.
+
+**A law the sensor must bend to follow.** Each law's replay asks the sensor gains (force gain, marker scales) that
+follow the recording best; the prior bounds them (:mod:`sysid.gain_prior`, +-15 % by default). ``A`` also replaces
+``R`` only where it asks its gains no further outside their prior than ``R`` does (:func:`beyond_prior`): a law
+that fits only through a sensor gain a real cell's data sheet rules out (e.g. markers that move twice as deep as
+recorded) is not evidence for the law. (Session 53 measured the calibration's depth scale 0.39 / 0.40 under the
+Green-strain law on the deep presses stiction_s105 and gel_creep_s108 of the reference set.)
 
 This module reads a recording only through :mod:`sysid.evidence` and replays it through
 :class:`sysid.observation.ObservationModel`.
@@ -39,13 +53,15 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from sim_core.errors import CalibrationError
 from sim_core.scenes.tactile_scene import SIMULATION_KEYS
 from sysid.calibration import whitened_rms
 from sysid.covariance import andrews_bandwidth, bin_scores, hac_meat, residual_bin_s, residual_times_s, time_bins
 from sysid.drive_calibration import fit_drive
-from sysid.fit import FIRST_STEP, fit
-from sysid.gain_prior import GainPrior
+from sysid.fit import FitProblem, parameter_spec
+from sysid.gain_prior import PRIOR_OF, GainPrior
 from sysid.gain_profile import GainProfile
+from sysid.jacobians import make_jacobian
 from sysid.observation import ObservationModel, scene_dict_for
 
 GEL_LAWS: tuple[str, ...] = ("stable_neohookean", "green_strain")
@@ -65,11 +81,18 @@ both x0.7 this simulator's Green-strain press-slide fitted with the modulus alon
 truth and could not part the laws); the lagged friction's stick speed, which the calibration fits too (on
 nominal_s101 at the scene's 10 mm/s both laws stay at whitened RMS 4.4-6.6, fitted to 3.4-3.5 mm/s 1.9-2.5)."""
 
-PROFILE_REPLAYS = 5
-"""Replay budget of each law's fit of :data:`PROFILED` (the start's replay, with tangents, included; the fit's stops
-end it earlier where it has converged). On nominal_s101 from the +30 % start three replays left the default law's fit
-short of its valley (whitened sum of squares 752,212 against 561,846 from -30 %; five replays: 490,446), and the
-choice then followed the start (docs/benchmarks_log.md, session 54)."""
+STEPS = 2
+"""Levenberg-Marquardt steps of each law before the comparison (:func:`law_steps`: a replay with tangents a step,
+a plain replay at the last step's end)."""
+
+STEP_RADIUS = 1.5
+"""Largest change of each :data:`PROFILED` search coordinate (log units: a factor 4.5) in a law's step
+(:func:`damped_step`): wide enough that the scene's stick speed (10 mm/s) reaches nominal_s101's 2.8 mm/s (ln 3.5 = 1.27)
+and a start x2 its values in one Gauss-Newton step, narrow enough that a step the tangents mispredict stays where the confirming replay still follows the
+recording. A step that raises the cost is halved once (:func:`law_steps`)."""
+
+CHECKED_GAINS = ("force_gain", "marker_scale_xy", "marker_scale_z")
+"""Sensor gains whose excursion outside their prior keeps the reference law (:func:`beyond_prior`)."""
 
 NULL_SIGMAS = 2.0
 """The other law replaces the reference law only where its delta-BIC exceeds this many standard deviations of the
@@ -83,20 +106,25 @@ class GelLawChoice:
     Attributes:
         chosen: the law the recording is replayed with: the other law where it is better by more than the margin,
             else the reference law.
-        cost: law -> whitened sum of squares over :attr:`channels` at the law's fitted values (noise units squared,
+        cost: law -> whitened sum of squares over :attr:`channels` at the law's stepped values (noise units squared,
             summed over samples).
         rms: law -> channel -> whitened RMS at the law's fitted values.
         margin: the runner-up's cost minus the best law's (the delta-BIC in the best law's favour; equal parameter
             counts).
         channels: the compared channels.
         reference: the law kept unless the data reject it (the scene's).
-        fitted: law -> its fitted :data:`PROFILED` values (empty where nothing was fitted).
+        fitted: law -> its :data:`PROFILED` values after its step (empty where nothing was stepped).
         gains: law -> the sensor gains its fitted replay asked for before their prior bounded them (``force_gain``,
             ``marker_scale_xy``, ``marker_scale_z``, ...; empty without ``gain_prior``).
+        steps: law -> whitened sums of squares of its replays in turn (:func:`law_steps`: the start, the step, half
+            the step where the step raised the cost).
+        beyond_prior: law -> how far its asked force gain or marker scales lie outside their prior
+            (:func:`beyond_prior`; filled where the other law is the best).
         null_sd: standard deviation of the reference's delta-BIC under the null (module docstring); NaN where the
             reference law is the best (no change to test).
         decided: False where the best law is not the reference but its delta-BIC is within ``NULL_SIGMAS * null_sd``
-            (the reference is kept: the recording does not part the laws).
+            (the reference is kept: the recording does not part the laws), or it asks its sensor gains further
+            outside their prior than the reference does (:attr:`beyond_prior`; module docstring).
     """
 
     chosen: str
@@ -109,6 +137,8 @@ class GelLawChoice:
     null_sd: float = math.nan
     decided: bool = True
     gains: dict[str, dict[str, float]] | None = None
+    steps: dict[str, list[float]] | None = None
+    beyond_prior: dict[str, float] | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready: the chosen law, the margin and its null spread, each law's cost, fitted values and whitened
@@ -117,6 +147,8 @@ class GelLawChoice:
                 "null_sd": None if math.isnan(self.null_sd) else self.null_sd, "decided": self.decided,
                 "cost": dict(self.cost), "fitted": {law: dict(v) for law, v in (self.fitted or {}).items()},
                 "gains_asked": {law: dict(v) for law, v in (self.gains or {}).items()},
+                "step_costs": {law: list(v) for law, v in (self.steps or {}).items()},
+                "beyond_prior": dict(self.beyond_prior or {}),
                 "whitened_rms": {law: dict(r) for law, r in self.rms.items()}, "channels": list(self.channels)}
 
 
@@ -129,6 +161,17 @@ class _GainsFromRest(GainProfile):
         if self.model.marker_rest is None and "markers_xyz" in raw:
             self.model.marker_rest = np.asarray(raw["markers_xyz"][0], dtype=float)
         return super().__call__(raw)
+
+
+def beyond_prior(asked: Mapping[str, float], prior: GainPrior) -> float:
+    """How far the gains ``asked`` (:data:`CHECKED_GAINS`, relative to the scene's: 1 = the data sheet) lie outside
+    ``prior``: the largest distance of one past its bound (-), 0 where all lie inside."""
+    out = 0.0
+    for key in CHECKED_GAINS:
+        if key in asked:
+            lo, hi = prior.bounds(PRIOR_OF[key])
+            out = max(out, lo - float(asked[key]), float(asked[key]) - hi)
+    return out
 
 
 def _whitened(model: ObservationModel, prediction: Mapping[str, np.ndarray], channels: Sequence[str]) -> np.ndarray:
@@ -160,24 +203,102 @@ def _residual_times(model: ObservationModel, channels: Sequence[str]) -> np.ndar
     return residual_times_s(stamps, {ch: int(np.asarray(model.data(ch)).size) for ch in channels}, channels)
 
 
+def damped_step(J: np.ndarray, r: np.ndarray, radius: float, lb: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Levenberg-Marquardt step of the whitened residual ``r`` ``(m,)`` with Jacobian ``J`` ``(m, p)``: the
+    Gauss-Newton step ``-(J^T J)^-1 J^T r`` where no coordinate moves more than ``radius``, else
+    ``-(J^T J + lam D)^-1 J^T r`` (``D`` the diagonal of ``J^T J``, Marquardt's scaling) with the smallest ``lam`` that
+    keeps every coordinate within ``radius`` (bisected in ``log lam``); then clipped to the bounds ``lb <= step <=
+    ub`` ``(p,)`` (the start at ``u = 0``). A column that is not finite (a parameter without tangents) stays at zero.
+
+    Returns:
+        the step ``(p,)``, search-coordinate units.
+    """
+    J = np.asarray(J, dtype=float)
+    r = np.asarray(r, dtype=float)
+    step = np.zeros(J.shape[1])
+    seen = np.all(np.isfinite(J), axis=0) & np.any(J != 0.0, axis=0)
+    if not seen.any():
+        return step
+    A, g = J[:, seen].T @ J[:, seen], J[:, seen].T @ r
+    D = np.diag(np.maximum(np.diag(A), 1e-12 * float(np.max(np.diag(A)))))
+
+    def solve(lam: float) -> np.ndarray:
+        return np.linalg.lstsq(A + lam * D, -g, rcond=None)[0]
+
+    s = solve(0.0)
+    if float(np.max(np.abs(s))) > radius:
+        lo, hi = -12.0, 12.0  # log10 lam: at 1e12 the step is the gradient's, 1e-12 of it
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if float(np.max(np.abs(solve(10.0 ** mid)))) > radius else (lo, mid)
+        s = solve(10.0 ** hi)
+    step[seen] = s
+    return np.clip(step, lb, ub)
+
+
+def law_steps(model: ObservationModel, names: Sequence[str], start: Mapping[str, float], steps: int = STEPS,
+              radius: float = STEP_RADIUS) -> tuple[dict[str, float], dict[str, np.ndarray], list[float]]:
+    """``(values, prediction, costs)`` of ``model`` after ``steps`` Levenberg-Marquardt steps (:func:`damped_step`)
+    of the parameters ``names`` from ``start`` (a missing name: the model's value), each on the tangents of the
+    replay at its start (:class:`sysid.fit.FitProblem` with the sensitivity provider's joint replay), the last one's
+    end replayed without tangents. A step that raised the cost or diverged is halved once (one more replay) and
+    the steps end where the half did too. ``values`` and ``prediction`` of the best replay, ``costs`` the whitened
+    sums of squares of the replays in turn (inf: diverged).
+
+    Raises:
+        CalibrationError: the replay at the start diverged.
+    """
+    specs = [parameter_spec(n, float(start[n]) if n in start else model.parameter_value(n)) for n in names]
+    provider = make_jacobian("auto")
+    problem = FitProblem(model, specs, joint=getattr(provider, "joint", None))
+    try:
+        u = np.zeros(len(specs))
+        r = problem.residual(u, phase="initial")
+        if r is None:
+            raise CalibrationError(f"the replay diverged at the start values {problem.values(u)}: "
+                                   f"{problem.last_failure} (try a smaller --dt)")
+        lb, ub = problem.bounds
+        for k in range(steps):
+            J = problem.cached_jacobian(u)
+            if J is None:  # no tangents (finite differences' provider): its columns, a replay each
+                J = provider(problem, u)
+            step = damped_step(J, r, radius, lb - u, ub - u)
+            # the last step's end needs no tangents: a plain replay
+            phase = "final" if k == steps - 1 else "initial"
+            for _ in range(2):  # the step, then half of it where the step raised the cost (the tangents overshot)
+                trial = problem.residual(u + step, phase=phase) if np.any(step != 0.0) else None
+                if trial is not None and float(trial @ trial) < float(r @ r):
+                    break
+                step = 0.5 * step
+            else:
+                break
+            u, r = u + step, trial
+        costs = [2.0 * e.cost for e in problem.history]
+        prediction = problem.best_prediction()
+        return problem.values(problem.best[1]), prediction, costs
+    finally:
+        problem.close()
+
+
 def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01, t_max: float | None = None,
                    values: Mapping[str, float] | None = None, channels: Sequence[str] = TACTILE,
                    arch: str = "cpu", simulation: Mapping[str, Any] | None = None,
-                   profile: Sequence[str] = PROFILED, max_replays: int = PROFILE_REPLAYS,
+                   profile: Sequence[str] = PROFILED, n_steps: int = STEPS, step_radius: float = STEP_RADIUS,
                    null_sigmas: float = NULL_SIGMAS, gain_prior: GainPrior | None = GainPrior()) -> GelLawChoice:
-    """Fit each gel law's :data:`PROFILED` values to ``evidence`` and choose the law (module docstring).
+    """Step each gel law's :data:`PROFILED` values towards ``evidence`` and choose the law (module docstring).
 
     Args:
         evidence: a loaded recording (:func:`sysid.evidence.load_evidence`) of a tactile scene.
         laws: ``simulation.gel_element`` names to compare (exactly two); the scene's law (``simulation.gel_element``,
             else the default) is the reference where it is among them, else the first.
         dt, t_max, arch: the replays' step (s), end (s; None: the recording's) and elastic backend.
-        values: parameter values of every replay, and the start of each law's fit (None: the scene's).
+        values: parameter values of every replay, and the start of each law's step (None: the scene's).
         channels: the compared channels; those the recording lacks are skipped.
         simulation: other overrides of the scene's ``simulation:`` block for every replay (e.g. ``gel_resolution``).
-        profile: parameters fitted per law before the comparison, those the scene has (empty: each law replayed
+        profile: parameters stepped per law before the comparison, those the scene has (empty: each law replayed
             once at ``values``).
-        max_replays: replay budget of each law's fit.
+        n_steps: Levenberg-Marquardt steps of each law (:data:`STEPS`).
+        step_radius: largest change of each search coordinate in a law's step (:data:`STEP_RADIUS`).
         null_sigmas: the margin in standard deviations of the delta-BIC under the null (0: the smaller cost wins).
         gain_prior: the sensor gains refitted in closed form to every replay within this prior
             (:class:`sysid.gain_profile.GainProfile`); None: the scene's sensor calibration.
@@ -188,7 +309,7 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
     Raises:
         ValueError: not two laws, or none of ``channels`` in the recording.
         ConfigError: an unknown law (the scene's check names it) or parameter.
-        CalibrationError: a replay that diverged at the start of a law's fit.
+        CalibrationError: a law's replay that diverged at ``values``.
     """
     if len(laws) != 2:
         raise ValueError(f"choose_gel_law: compare two gel laws, got {list(laws)}")
@@ -198,6 +319,7 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
     fitted: dict[str, dict[str, float]] = {}
     residual: dict[str, np.ndarray] = {}
     gains: dict[str, dict[str, float]] = {}
+    steps: dict[str, list[float]] = {}
     present = [ch for ch in channels if ch in evidence.channels_present]
     if not present:
         raise ValueError(f"choose_gel_law: the recording has none of the channels {list(channels)}")
@@ -217,10 +339,8 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
             model.set_nominal(held)
         fitted_names = [n for n in profile if n in model.simulation().parameter_names]
         if fitted_names:
-            result = fit(model, fitted_names, initial={n: values[n] for n in fitted_names if n in values},
-                         max_replays=max_replays, robust=None, first_step=FIRST_STEP)
-            fitted[law] = dict(result.values)
-            prediction = result.prediction_final
+            fitted[law], prediction, steps[law] = law_steps(
+                model, fitted_names, {n: values[n] for n in fitted_names if n in values}, n_steps, step_radius)
         else:
             prediction = model.predict(model.simulate(values))
         found = None if model.gain_profile is None else model.gain_profile.calibration_of(prediction)
@@ -236,7 +356,10 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
     if ranked[0] == other:
         null_sd = null_spread(residual[other], residual[reference] - residual[other], _residual_times(model, present),
                               residual_bin_s(model))
-        decided = margin > null_sigmas * null_sd
+        beyond = {law: beyond_prior(gains.get(law, {}), gain_prior) for law in laws} if gain_prior else {}
+        decided = margin > null_sigmas * null_sd and beyond.get(other, 0.0) <= beyond.get(reference, 0.0)
+    else:
+        beyond = {}
     return GelLawChoice(chosen=other if ranked[0] == other and decided else reference, cost=cost, rms=rms,
                         margin=margin, channels=tuple(present), reference=reference, fitted=fitted,
-                        null_sd=null_sd, decided=decided, gains=gains)
+                        null_sd=null_sd, decided=decided, gains=gains, steps=steps, beyond_prior=beyond)

@@ -32,8 +32,8 @@ contract, ``schema_version``, and ``extra.pipeline`` with the stage that named (
 apply to that stage.
 
 ``--gel-element auto`` chooses the gel's law per recording before either stage (:func:`with_gel_law`,
-:func:`sysid.gel_law.choose_gel_law`: each law's modulus, friction, stick speed and sensor gains fitted from the scene's values,
-up to five replays a law, the scene's law kept unless the other's whitened sum of squares is smaller beyond twice its spread
+:func:`sysid.gel_law.choose_gel_law`: each law's modulus, friction and stick speed moved from the scene's values by one
+Levenberg-Marquardt step on a replay's tangents, sensor gains refitted, a replay with tangents and a plain one a law, the scene's law kept unless the other's whitened sum of squares is smaller beyond twice its spread
 under the null); the choice is in ``extra.pipeline.gel_law``, and both stages replay that law.
 """
 

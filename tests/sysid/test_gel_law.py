@@ -1,22 +1,25 @@
-"""The gel's law chosen by the data (:mod:`sysid.gel_law`): each law fitted, the smaller whitened sum of squares,
+"""The gel's law chosen by the data (:mod:`sysid.gel_law`): each law stepped towards its own values, the smaller
+whitened sum of squares,
 a change from the scene's law only beyond the comparison's spread under the null.
 
 - This simulator's own press-slides of the card scene (pressed 1.45 mm by a kinematic arm, slid 6 mm), one made with
   the Green-strain gel and one with the default Stable Neo-Hookean gel, noise at the reference bags' levels, each
   written with a ``scene.yaml`` that does not name its law (concealed): the two laws' noise-free streams differ by
   3.2 / 12.7 / 62 noise levels (markers z / xy, F_z; peak load 26 N against 14 N).
-- The choice does not follow the start (session 54): each law is compared at its own fitted gel modulus, gel-sheet
-  friction, stick speed and sensor gains (force gain, marker scales, camera; up to five replays a law), and a law
+- The choice does not follow the start: each law is compared near its own gel modulus, gel-sheet friction and stick
+  speed after two Levenberg-Marquardt steps on its replays' tangents (session 55; session 54 fitted each law, up to
+  five replays with tangents), sensor gains (force gain, marker scales, camera) refitted at every replay, and a law
   other than the scene's is taken only where its delta-BIC exceeds twice its spread under the null
-  (:func:`sysid.gel_law.null_spread`). From starts with modulus and friction x0.7 and x1.3 both concealed
-  press-slides choose the law that made them (Green strain by delta-BIC 3.6e4 / 2.6e4 against a null spread of
-  0.5e3 / 1.8e3; the default law by 1.0e5 / 1.1e5). This simulator's shallow press made with the default law, which a
-  choice at the start's values took for Green strain from x1.3 and x2 (delta-BIC 21 / 64, session 53), keeps the
-  default law from x0.7, x1.3 and x2 (the default law's fitted cost the lower by 1.8 / 1.5 / 0.5).
+  (:func:`sysid.gel_law.null_spread`) and it asks its gains no further outside their prior than the scene's law.
+  From starts with modulus and friction x0.7, x1.3 and x2 both concealed press-slides choose the law that made them
+  (Green strain by delta-BIC 34,373 / 25,797 / 28,641 against a null spread of 2,730 / 1,745 / 9,272; the default law
+  by 1.06e5 / 1.12e5 / 1.20e5). This simulator's shallow press made with the default law, which a choice at the
+  start's values took for Green strain from x1.3 and x2 (delta-BIC 21 / 64, session 53), keeps the default law from
+  x0.7, x1.3 and x2 (the laws' costs within 1.1 / 1.4 / 2.1).
 - The null spread is the long-run standard deviation of ``2 e.g``: checked against the spread of many noise draws,
   white and time-correlated.
 
-About 75 CPU s in all: a profiled choice is 4-7 CPU s on a card press-slide, 1 s on the shallow press.
+About 71 CPU s in all: a choice is 3-13 CPU s on a card press-slide, under 1 s on the shallow press.
 """
 
 from __future__ import annotations
@@ -54,17 +57,17 @@ def off(factor: float) -> dict[str, float]:
             "friction.gel_sheet": factor * TRUE_PARAMS["friction.gel_sheet"]}
 
 
-@pytest.mark.parametrize("factor", [0.7, 1.3])
-def test_the_data_choose_the_law_that_made_the_recording_from_starts_30_percent_off(concealed, factor):
+@pytest.mark.parametrize("factor", [0.7, 1.3, 2.0])
+def test_the_data_choose_the_law_that_made_the_recording_from_starts_off(concealed, factor):
     law, bag = concealed
     choice = choose_gel_law(load_evidence(bag), values=off(factor))
     assert choice.chosen == law and choice.decided, choice.summary()
-    # the true law, fitted (up to five replays), leaves a whitened sum of squares 4.1-63 times smaller than the
+    # the true law, after its two steps, leaves a whitened sum of squares 4.1-68 times smaller than the
     # other's: a delta-BIC of tens of thousands, far beyond the null's spread where the other law is the scene's default
     other = next(name for name in choice.cost if name != law)
     assert choice.cost[other] > 3.0 * choice.cost[law], choice.summary()
     assert choice.margin > 1.0e4, choice.summary()
-    if law != choice.reference:
+    if law != choice.reference and factor < 2.0:  # 12.6 / 14.8 null sd; from x2 3.1 (decided: > 2)
         assert choice.margin > 5.0 * choice.null_sd, choice.summary()
 
 
@@ -152,3 +155,38 @@ def test_sysid_with_gel_element_auto_fits_with_the_law_the_recording_chooses(con
     assert reported["choice"]["delta_bic"] > 1000.0
     first = doc["metrics"]["rms_initial"]
     assert max(first[ch]["whitened_rms"] for ch in ("markers_xyz", "wrench")) < 1.5, first
+
+
+def test_a_law_asking_gains_outside_their_prior_is_measured_by_its_excursion():
+    """:func:`sysid.gel_law.beyond_prior`: 0 inside the prior (+-15 % by default, or a sensor's own width), else the
+    largest distance past a bound of the force gain or a marker scale (the focal lengths are absolute: not read)."""
+    from sysid.gain_prior import GainPrior
+    from sysid.gel_law import beyond_prior
+
+    inside = {"force_gain": 0.98, "marker_scale_xy": 1.149, "marker_scale_z": 1.03, "fx": 300.0}
+    assert beyond_prior(inside, GainPrior()) == 0.0
+    deep = {**inside, "marker_scale_z": 0.40}  # markers asked to move 2.5x less deep than the law replays them
+    assert beyond_prior(deep, GainPrior()) == pytest.approx(0.45)
+    assert beyond_prior(deep, GainPrior(marker_scale=0.7)) == 0.0
+    assert beyond_prior({**inside, "force_gain": 1.5}, GainPrior(force_gain=0.3)) == pytest.approx(0.2)
+
+
+def test_the_damped_step_is_gauss_newtons_within_its_radius_and_shorter_beyond():
+    """:func:`sysid.gel_law.damped_step` on a linear residual ``r(u) = J u + r0``: inside the radius the Gauss-Newton
+    step (the exact minimiser), beyond it a Levenberg-Marquardt step whose largest coordinate is the radius and which
+    still lowers the cost; bounds clip it; a column without tangents (NaN) does not move."""
+    from sysid.gel_law import damped_step
+
+    rng = np.random.default_rng(5)
+    J = rng.standard_normal((50, 3)) * np.array([1.0, 10.0, 0.1])
+    u_true = np.array([0.3, -0.2, 0.5])
+    r0 = -J @ u_true
+    inf = np.full(3, np.inf)
+    assert damped_step(J, r0, 1.0, -inf, inf) == pytest.approx(u_true, abs=1e-9)
+    short = damped_step(J, r0, 0.25, -inf, inf)
+    assert np.max(np.abs(short)) == pytest.approx(0.25, rel=1e-6)
+    assert np.linalg.norm(J @ short + r0) < np.linalg.norm(r0)
+    assert damped_step(J, r0, 1.0, -inf, np.array([np.inf, np.inf, 0.1]))[2] == pytest.approx(0.1)
+    J_nan = J.copy()
+    J_nan[:, 1] = np.nan
+    assert damped_step(J_nan, r0, 1.0, -inf, inf)[1] == 0.0
