@@ -11,6 +11,7 @@ On this simulator's own press-slide through a compliant arm (the card scene of `
 
 from __future__ import annotations
 
+import copy
 import warnings
 
 import numpy as np
@@ -34,6 +35,9 @@ ARM = (2000.0, 5.0)
 SEGMENTS = (((0.0, 0.0, -0.0025), 8), *PRESS_SLIDE[1:], ((0.0, 0.0, 0.0), 4), ((0.0, 0.0, 0.0025), 8))
 """Press through the arm, slide, press deeper, slide on, hold, release (45 steps of 10 ms)."""
 
+STICK_SPEED = 0.002
+"""The stick speed ``contact.eps_v`` of ``sticky_bag``'s recording, m/s."""
+
 FITTED = ("sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet", "contact.eps_v")
 
 
@@ -43,6 +47,18 @@ def arm_bag(tmp_path_factory):
     targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), SEGMENTS)
     streams = add_noise(simulate_streams(scene, TRUE_PARAMS, targets, drive=ARM), seed=11)
     return write_bag(tmp_path_factory.mktemp("reuse") / "bag", scene, streams)
+
+
+@pytest.fixture(scope="module")
+def sticky_bag(tmp_path_factory):
+    """As ``arm_bag``, the recording made with a stick speed of 2 mm/s, its ``scene.yaml`` stating the default
+    10 mm/s: the calibration's secant stage moves it (and the fit starts from its step)."""
+    scene = scene_with(TRUE_PARAMS)
+    recorded = copy.deepcopy(scene)
+    recorded.setdefault("simulation", {})["contact_eps_v"] = STICK_SPEED
+    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), SEGMENTS)
+    streams = add_noise(simulate_streams(recorded, TRUE_PARAMS, targets, drive=ARM), seed=11)
+    return write_bag(tmp_path_factory.mktemp("sticky") / "bag", scene, streams)
 
 
 def _model(bag) -> ObservationModel:
@@ -84,7 +100,7 @@ def test_the_fits_first_evaluation_takes_the_replay_made_before_it_and_equals_a_
     assert np.max(np.abs(r - r_fresh)) <= 1e-9
     assert np.max(np.abs(taken.cached_jacobian(u0) - J_fresh)) <= 1e-9 * np.max(np.abs(J_fresh))
     assert np.max(np.abs(taken.extra_jacobian(u0) - extra_fresh)) <= 1e-9 * np.max(np.abs(extra_fresh))
-    assert np.linalg.norm(J_fresh, axis=0).min() > 1.0  # every column seen: the comparison is not one of zeros
+    assert np.linalg.norm(J_fresh, axis=0).min() > 0.5  # every column seen (bending 0.97): not a comparison of zeros
 
     other = _problem(model, made=made)
     other.residual(np.array([0.0, 0.1, 0.0, 0.0]), phase="initial")  # another modulus: replayed
@@ -94,7 +110,7 @@ def test_the_fits_first_evaluation_takes_the_replay_made_before_it_and_equals_a_
     assert not made.matches(model, start, names)  # another drive
 
 
-def test_sysid_hands_the_calibrations_secant_step_to_the_fit(arm_bag, tmp_path, monkeypatch):
+def test_sysid_hands_the_calibrations_secant_step_to_the_fit(sticky_bag, tmp_path, monkeypatch):
     """``fit_recording`` (``thinshell sysid``'s defaults) makes the calibration's secant step with the fit's
     tangents, and the fit's first evaluation takes it: one rollout with tangents fewer than evaluations with them."""
     rollouts, taken = [], []
@@ -111,7 +127,7 @@ def test_sysid_hands_the_calibrations_secant_step_to_the_fit(arm_bag, tmp_path, 
 
     monkeypatch.setattr(jacobians, "rollout_with_tangents", counted)
     monkeypatch.setattr(TangentReplay, "matches", checked)
-    out = fit_recording(arm_bag, tmp_path / "fit", FitOptions(max_nfev=2))
+    out = fit_recording(sticky_bag, tmp_path / "fit", FitOptions(max_nfev=2))
     stage = out.sensor.secant
     assert stage is not None and stage.accepted
     assert "contact.eps_v" in out.result.values
