@@ -27,26 +27,13 @@ from sysid.fit_recording import FitOptions, fit_recording
 from sysid.jacobians import TangentReplay
 from sysid.observation import ObservationModel
 from sysid.replay_drive import drive_sensitivities
-from tests.sysid.simbag import PRESS_SLIDE, TRUE_PARAMS, add_noise, scene_with, simulate_streams, targets_from_segments, write_bag
-
-ARM = (2000.0, 5.0)
-"""The recording's arm along the sensor normal: stiffness (N/m) and damping (N s/m)."""
-
-SEGMENTS = (((0.0, 0.0, -0.0025), 8), *PRESS_SLIDE[1:], ((0.0, 0.0, 0.0), 4), ((0.0, 0.0, 0.0025), 8))
-"""Press through the arm, slide, press deeper, slide on, hold, release (45 steps of 10 ms)."""
+from tests.sysid.simbag import TRUE_PARAMS, add_noise, scene_with, simulate_streams, targets_from_segments, write_bag
+from tests.sysid.test_sysid_drive import ARM, SEGMENTS, arm_bag  # noqa: F401 (the arm's recording, a fixture)
 
 STICK_SPEED = 0.002
 """The stick speed ``contact.eps_v`` of ``sticky_bag``'s recording, m/s."""
 
 FITTED = ("sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet", "contact.eps_v")
-
-
-@pytest.fixture(scope="module")
-def arm_bag(tmp_path_factory):
-    scene = scene_with(TRUE_PARAMS)
-    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), SEGMENTS)
-    streams = add_noise(simulate_streams(scene, TRUE_PARAMS, targets, drive=ARM), seed=11)
-    return write_bag(tmp_path_factory.mktemp("reuse") / "bag", scene, streams)
 
 
 @pytest.fixture(scope="module")
