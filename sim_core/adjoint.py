@@ -233,6 +233,53 @@ def check_parameters(model: Model, params: Sequence[str]) -> list[str]:
 
 
 # ============================================================================ one step
+class SupportTerms:
+    """Which static terms of a rollout's steps have Hessian blocks touching a Dirichlet support
+    (:meth:`StepLinearization.support_product`), so that the terms that touch none are not evaluated.
+
+    A term is recognised across steps by itself, or by its hinge array where it is a bending term (the solver
+    hands each step a copy of the sheet's bending potential with that step's rest angles, sharing its hinges,
+    :meth:`sim_core.elastic.ElasticTerms.bending`). Its element vertex array is trusted to stay once its blocks
+    came over the same array object at two steps: the rule the Newton matrix's static pattern already rests on
+    (:meth:`sim_core.assembly.HessianAssembler.static_pattern`: elastic terms give the same ``vertices`` object
+    every call). The terms are held while kept, so that their ids stay unique; one instance per rollout
+    (:class:`sim_core.sensitivity.TangentPropagation` keeps one).
+    """
+
+    CONFIRMING_STEPS = 2
+    """Evaluations over the same vertex array object after which a term's elements are trusted."""
+
+    def __init__(self) -> None:
+        # key -> [anchor (held), vertices array (held), evaluations over it, {support bytes: touches}]
+        self._terms: dict[tuple[type, int], list] = {}
+
+    @staticmethod
+    def _key(p) -> tuple[tuple[type, int], object]:
+        anchor = p.hinges if isinstance(p, HingeBending) else p
+        return (type(p), id(anchor)), anchor
+
+    def untouched(self, p, support: np.ndarray) -> bool:
+        """Whether ``p``'s blocks are known to touch no vertex of ``support`` (``(n,)`` bool)."""
+        entry = self._terms.get(self._key(p)[0])
+        if entry is None or entry[2] < self.CONFIRMING_STEPS:
+            return False
+        mark = np.packbits(support).tobytes()
+        touches = entry[3].get(mark)
+        if touches is None:
+            vertices = entry[1]
+            touches = entry[3][mark] = bool(len(vertices) and support[vertices].any())
+        return not touches
+
+    def note(self, p, vertices: np.ndarray) -> None:
+        """``p`` was evaluated and its blocks came over ``vertices`` ``(k, m)``."""
+        key, anchor = self._key(p)
+        entry = self._terms.get(key)
+        if entry is not None and entry[1] is vertices:
+            entry[2] += 1
+        else:
+            self._terms[key] = [anchor, vertices, 1, {}]
+
+
 class StepLinearization:
     """The implicit-function-theorem linearisation of one converged step (module docstring).
 
@@ -418,13 +465,19 @@ class StepLinearization:
         r = dx.shape[2]
         return (self.H @ dx.reshape(3 * self.n, r)).reshape(self.n, 3, r)
 
-    def support_product(self, dx: np.ndarray) -> np.ndarray:
+    def support_product(self, dx: np.ndarray, kept: "SupportTerms | None" = None) -> np.ndarray:
         """The exact Hessian times ``dx`` (shape ``(n, 3, r)``) on the free rows, zeros on the fixed rows, from
         the element blocks that touch a vertex where ``dx`` is non-zero, without assembling :attr:`H` (unless
         it is assembled already): the right-hand side ``H_fd dx_d`` of a Dirichlet tangent supported on a few
         vertices (an effector's, :class:`sim_core.sensitivity.DriveStep`). Equal to :meth:`hessian_product` on
         the free rows up to round-off; the constant diagonal terms (inertia, damping) couple no two vertices
-        and add nothing there."""
+        and add nothing there.
+
+        With ``kept`` (a rollout's :class:`SupportTerms`), a static term (every term but the contacts and the
+        friction) whose blocks were found over the same vertex array at two earlier steps, none of them touching
+        this support, is not evaluated at all (bit for bit the same product: its blocks added nothing). On a
+        press-and-slide the effector's support touches the gel's tets only, so the card's membrane and Kirchhoff
+        bending Hessians (the most costly NumPy Hessians of a step) are no longer built for a product of zeros."""
         if self._H is not None:
             out = self.hessian_product(dx)
             out[self.fixed] = 0.0
@@ -434,7 +487,12 @@ class StepLinearization:
         for p in self.record.terms:
             if isinstance(p, ConstantDiagonalHessian):
                 continue
+            static = kept is not None and not any(p is q for q in self.contact_terms)
+            if static and kept.untouched(p, support):
+                continue
             hb = p.hessian(self.x, "none")
+            if static:
+                kept.note(p, hb.vertices)
             touch = support[hb.vertices].any(axis=1) if len(hb.vertices) else np.zeros(0, bool)
             if not touch.any():
                 continue

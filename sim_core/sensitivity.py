@@ -33,7 +33,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from sim_core.adjoint import StepLinearization, Trajectory, _check_trajectory, check_parameters, rollout_step
+from sim_core.adjoint import StepLinearization, SupportTerms, Trajectory, _check_trajectory, check_parameters, rollout_step
 from sim_core.contact_set import ContactSet
 from sim_core.control import Control
 from sim_core.elastic import ElasticTerms
@@ -84,6 +84,8 @@ class TangentPropagation:
         dq: tangent of the position of the effector on a series spring in the current state, ``(3, P)``
             (zero after a step without one, :class:`DriveStep`).
         db: tangent of the spring's compression in the last step, ``(P,)`` (zero without one).
+        support_terms: the rollout's :class:`~sim_core.adjoint.SupportTerms`: the static terms whose Hessian blocks
+            touch no driven vertex are not evaluated for a drive step's support product.
     """
 
     def __init__(self, model: Model, params: Sequence[str], contact_force: bool = False, backend: str = "numpy") -> None:
@@ -96,6 +98,7 @@ class TangentPropagation:
         self.dtb = {name: np.zeros((len(model.bodies[name].hinges), P)) for name in self.elastic.hinges}
         self.dq = np.zeros((3, P))
         self.db = np.zeros(P)
+        self.support_terms = SupportTerms()
         self.dyield = {}
         for name in self.elastic.hinges:
             key = f"{name}.yield_angle"
@@ -131,7 +134,7 @@ class TangentPropagation:
         if drive is not None:  # the response to a unit compression: the driven vertices moved by -n
             unit = np.zeros((n, 3, 1))
             unit[drive.vertices, :, 0] = -np.asarray(drive.axis, dtype=float)
-            rhs = np.concatenate([rhs, lin.support_product(unit)], axis=2)
+            rhs = np.concatenate([rhs, lin.support_product(unit, self.support_terms)], axis=2)
         solved = -lin.solve(rhs.reshape(3 * n, rhs.shape[2])).reshape(n, 3, rhs.shape[2])
         dx_new = solved[:, :, :P]
         dx_new[lin.fixed] = dx_d[lin.fixed]

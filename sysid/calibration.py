@@ -561,7 +561,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
               reweight_channels: bool = True, secant_params=SECANT_PARAMETERS,
               secant_replays: int = SECANT_REPLAYS, drive: bool = False,
               secant_first: Callable[[], FirstReplay | None] | None = None,
-              secant_before: Callable[[Mapping[str, float]], None] | None = None, batched: bool = False,
+              secant_before: Callable[[Mapping[str, float]], None] | None = None,
+              secant_last: Callable[[Mapping[str, float]], Any] | None = None, batched: bool = False,
               batch_size: int | str | None = None, prior: GainPrior | None = None) -> CalibrationResult:
     """Calibrate a replay to its recording: the simulator parameters ``params`` (weighted least
     squares, :func:`sysid.fit.fit`, within bounds around the scene's values) and the sensor
@@ -624,6 +625,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
             are bitwise the stage's first ones (:func:`sysid.calibration_secant.secant_calibration` ``first``).
         secant_before: called with the parameters of each of that stage's replays before it is made
             (:func:`sysid.calibration_secant.secant_calibration` ``before``).
+        secant_last: makes that stage's last replay (:func:`sysid.calibration_secant.secant_calibration` ``last``;
+            ``thinshell sysid``: with the tangents of its fit's first joint replay).
         prior: the sensor gains' prior (None: the sensor's in the packaged sysid config,
             :func:`sysid.gain_prior.load_gain_prior`).
 
@@ -698,7 +701,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
 
         stage_bounds = {**calibration_bounds(model, secant_names), **dict(bounds or {})}
         stage = secant_calibration(model, values, raw, sensor_calibrated, secant_names, stage_bounds, secant_replays,
-                                   first=secant_first, before=secant_before)
+                                   first=secant_first, before=secant_before, last=secant_last)
         if stage.accepted:
             values.update(stage.values)
             model.set_nominal(values)

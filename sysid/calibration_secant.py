@@ -111,7 +111,8 @@ def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.n
                        calibrated: Callable[[Mapping[str, np.ndarray]], Mapping[str, np.ndarray]],
                        names: Sequence[str], bounds: Mapping[str, tuple[float, float]],
                        max_replays: int, first: Callable[[], "FirstReplay | None"] | None = None,
-                       before: Callable[[Mapping[str, float]], None] | None = None) -> SecantStage:
+                       before: Callable[[Mapping[str, float]], None] | None = None,
+                       last: Callable[[Mapping[str, float]], SimTrace] | None = None) -> SecantStage:
     """Fit the positive parameters ``names`` of ``model`` on secants (module docstring).
 
     Args:
@@ -128,6 +129,11 @@ def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.n
         before: called with each replay's parameters (all of them, SI) before the replay is made (or taken from
             ``first``): a caller may start work that needs them beside it (:func:`sysid.diagnose.signature_engine.prepare`
             starts the kinematic reference at the step's values in its probe process).
+        last: makes the stage's last replay of its budget (the ``max_replays``-th, a Gauss-Newton step; not a lone
+            probe) from its parameters instead of the stage, from t = 0: ``thinshell sysid`` makes it with the
+            tangents its fit's first joint replay needs (:class:`sysid.jacobians.TangentReplay`), since the fit starts
+            at that step's values where it is the stage's best (:mod:`sysid.fit_recording`). None: a plain replay
+            (resumed where the stage resumes).
 
     The cost gives every fitted channel one vote: each channel's whitened residual is divided by its
     RMS at the start and by ``sqrt`` of its sample count relative to the mean count. The model's gap,
@@ -170,15 +176,20 @@ def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.n
         offset += n
     r0 = whitened(raw0, scale)
     raws: dict[bytes, dict[str, np.ndarray]] = {np.zeros(len(names)).tobytes(): dict(raw0)}
-    shared = set(names) <= set(CONTACT_ONSET_PARAMETERS) and max_replays > 1
+    # a later replay resumes from the first one's states: none left to resume where the only later one is ``last``'s
+    shared = set(names) <= set(CONTACT_ONSET_PARAMETERS) and max_replays > (2 if last is not None else 1)
+    count = [0]  # replays made so far
     kept: list[Resume | None] = []  # the later replays' start, from the first replay (None: none)
 
     def residual(u: np.ndarray) -> np.ndarray | None:
         values = {**dict(base), **{n: start[n] * math.exp(float(x)) for n, x in zip(names, u)}}
         if before is not None:
             before(values)
+        count[0] += 1
         try:
-            raw = model.predict_raw(_replay(model, values, shared, kept, first))
+            trace = (last(values) if last is not None and count[0] == max_replays > 1
+                     else _replay(model, values, shared, kept, first))
+            raw = model.predict_raw(trace)
         except SimulationDivergedError:
             return None
         raws[np.asarray(u, dtype=float).tobytes()] = raw

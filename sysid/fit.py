@@ -48,7 +48,7 @@ from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedErr
 from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovariance, model_robust_covariance,
                               not_identified, not_identified_note, nuisance_covariance)
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
-                             SensitivityJacobian, load_sensitivity, make_jacobian)
+                             DIFFERENCE_PARAMETERS, SensitivityJacobian, load_sensitivity, make_jacobian)
 from sysid.fit_region import (first_region_scale, held_jacobian, robust_sigma, sigma_of, unidentified_coordinates,
                                unseen_columns)
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
@@ -168,6 +168,8 @@ class FitProblem:
             Jacobian columns every joint replay also computes from its tangents and keeps beside its Jacobian
             (:meth:`extra_jacobian`): where the replays are cold, the fit's optimum then needs no replay of its own
             for them (:func:`_nuisance_jacobian`).
+        made: a replay with tangents made before the fit (:class:`sysid.jacobians.TangentReplay`), which the first
+            joint evaluation at its parameters takes instead of replaying (then dropped); None: none.
 
     Attributes:
         last_positions: vertex positions ``(K + 1, n, 3)`` of the last serial replay (None when
@@ -182,8 +184,9 @@ class FitProblem:
                  deadline: float | None = None, on_eval: Callable[[Evaluation], None] | None = None,
                  joint: Callable[["FitProblem", np.ndarray], tuple] | None = None, warm_start: bool = False,
                  max_replays: int | None = None, batched: bool = False, batch_size: int | str | None = None,
-                 extra: Sequence[ParameterSpec] = ()) -> None:
+                 extra: Sequence[ParameterSpec] = (), made: Any = None) -> None:
         self.model = model
+        self.made = made
         self.extra_specs = tuple(extra)
         self._extra: dict[bytes, np.ndarray] = {}
         self.batched, self.batch_size = bool(batched), batch_size
@@ -364,7 +367,7 @@ class FitProblem:
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state.update(_pool=None, on_eval=None, _cache={}, _jacobians={}, history=[], best=None, joint=None,
+        state.update(_pool=None, on_eval=None, _cache={}, _jacobians={}, history=[], best=None, joint=None, made=None,
                      last_positions=None)
         return state
 
@@ -542,7 +545,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         batch_size: int | str | None = None, robust: str | None = DEFAULT_ROBUST_METHOD,
         stop_robust_sigma: float | None = None, stop_trial_robust: bool = False,
         nuisance: Mapping[str, float] | None = None, hold_unidentified: bool = False,
-        first_step: float | None = None) -> FitResult:
+        first_step: float | None = None, made: Any = None) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -654,6 +657,10 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             positive parameter; :func:`first_region_scale` sets ``least_squares``' ``x_scale`` for it). None: the
             method's own (``x_scale = 1``: 2.63 log units, a factor 13.8, within the default bounds).
             ``thinshell sysid``: :data:`FIRST_STEP`.
+        made: a cold replay with tangents made before the fit (:class:`sysid.jacobians.TangentReplay`; ``thinshell
+            sysid``: the calibration's secant step, at the fit's start): the start's joint evaluation takes it where
+            it is the same replay (its parameters bitwise, its drive, the tangent columns
+            :func:`joint_tangent_names` gives), instead of replaying. None: none.
 
     Returns:
         the :class:`FitResult`.
@@ -689,7 +696,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         robust is not None and joint is not None and not warm_start) else []
     problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint,
                          warm_start=warm_start, max_replays=max_replays, batched=batched, batch_size=batch_size,
-                         extra=extra)
+                         extra=extra, made=made)
     saved_warm_start, model.warm_start = getattr(model, "warm_start", None), None
     saved_scale = getattr(model, "sigma_scale", None)
     if reweight_channels:
@@ -891,6 +898,18 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         sigma_scale=channel_scale, sigma_robust=sigma_robust, robust=robust_cov, not_identified=unidentified,
         held=held,
     )
+
+
+def joint_tangent_names(params: Sequence[str], nuisance: Mapping[str, float], *, robust: str | None,
+                        warm_start: bool) -> tuple[str, ...]:
+    """The tangent columns of :func:`fit`'s joint replays with the sensitivity provider
+    (:meth:`sysid.jacobians.SensitivityJacobian.joint`), in order: the fitted parameters with tangents, then the
+    nuisance parameters where the fit takes their columns from every joint replay (a robust covariance, cold
+    replays, none of them a difference parameter). What a replay made before the fit must carry to be taken as its
+    start's joint replay (``made``)."""
+    names = [n for n in params if n not in DIFFERENCE_PARAMETERS]
+    extra = [n for n in nuisance if n not in params] if robust is not None and not warm_start else []
+    return tuple(names + ([] if any(n in DIFFERENCE_PARAMETERS for n in extra) else extra))
 
 
 def nuisance_prior_u(name: str, value: float, prior: float) -> float:

@@ -25,17 +25,18 @@ from sim_core.elastic import SOLID_ELEMENTS
 from sim_core.errors import ConfigError
 from sim_core.scenes.tactile_scene import SIMULATION_KEYS
 from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
-from sysid.calibration_secant import SECANT_REPLAYS
+from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.diagnose.probe_worker import calibration_probe
 from sysid.drive_calibration import fit_drive
 from sysid.evidence import load_evidence
 from sysid.gain_profile import GainProfile
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
-                       FitResult, fit)
+                       FitResult, fit, joint_tangent_names)
 from sysid.gel_law import AUTO_LAW, choose_gel_law
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
-from sysid.observation import ObservationModel
+from sysid.jacobians import TangentReplay, make_jacobian
+from sysid.observation import ObservationModel, SimTrace
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
 from sysid.tack import LAYER_ROUNDS, SHEAR_STIFFNESS_SETTING, layer_log_sigma, nominal_tack, refit_layer
@@ -336,6 +337,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     calibrating = (options.sensor_calibration or calibrated) and model.sensor is not None  # a task scene may have none
     # the calibration's secant probe forked before this process starts Taichi (reading a parameter does), through
     # the drive, to replay beside the calibration's start replay
+    made: list[TangentReplay] = []  # the calibration's secant step, replayed with the fit's first tangents
     worker = None if not (calibrating and options.probe_worker) else calibration_probe(
         model, calibrated, secant_replays=SECANT_REPLAYS, max_replays=options.calibration_max_replays,
         max_time=options.calibration_max_time)
@@ -348,7 +350,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         if calibrating:
             sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
                                max_replays=options.calibration_max_replays, drive=options.drive,
-                               secant_first=None if worker is None else worker.result)
+                               secant_first=None if worker is None else worker.result,
+                               secant_last=_secant_step_with_tangents(model, options, calibrated, made))
     finally:
         if worker is not None:
             worker.close()
@@ -376,7 +379,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                     batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
                     stop_trial_robust=options.stop_trial_robust, hold_unidentified=options.hold_unidentified,
                     first_step=options.first_step, reweight_channels=alternate)
-    result = fit(model, fitted, nuisance=nuisance, **fit_args)
+    result = fit(model, fitted, nuisance=nuisance, made=made.pop() if made else None, **fit_args)
     fit_replays = [result.sim_runs]
     for _ in range(LAYER_ROUNDS - 1 if alternate else 0):  # k_t at the fitted materials, then the materials again
         tack, moved = refit_layer(model, tack, dict(result.values))
@@ -425,3 +428,37 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         write_report(result, doc, staging)
     scene = None if scene_doc is None else write_fitted_scene(write_scene, scene_doc, force=force)
     return FitOutcome(result, doc, out, notes, sensor, scene)
+
+
+def _secant_step_with_tangents(model: ObservationModel, options: FitOptions, calibrated: Sequence[str],
+                               made: list[TangentReplay]) -> Callable[[dict[str, float]], SimTrace] | None:
+    """The calibration's secant step made with the tangents of the fit's first joint replay
+    (:func:`sysid.calibration_secant.secant_calibration` ``last``), kept in ``made`` for :func:`sysid.fit.fit`.
+
+    The fit starts at the start's materials and the stick speed of the stage's best replay, which is that step
+    where the step improved on the probe; its first joint replay was then the same cold replay again, made for its
+    tangents (10-14 % of a default fit of nominal_s101). Made from t = 0 (the stage resumes its plain replays from
+    before the gel's first contact: the tangents of the materials are not zero before it). None (the stage's own
+    replay) where the fit would not take it: the stick speed not fitted, warm replays, no sensitivity Jacobian.
+    The columns are :func:`sysid.fit.joint_tangent_names` of the fit's parameters with the stage's; a fit that ends
+    up asking for others (the stage not accepted, a tack layer's nuisance) replays as before.
+    """
+    if not options.fit_eps_v or options.warm_start:
+        return None
+    if getattr(make_jacobian(options.jacobian, options.fd_step), "joint", None) is None:
+        return None
+    stage = [n for n in SECANT_PARAMETERS if n not in calibrated and n not in options.params]
+
+    def replay(values: dict[str, float]) -> SimTrace:
+        names = joint_tangent_names([*options.params, *stage], nuisance_of(model, options), robust=options.robust,
+                                    warm_start=options.warm_start)
+        made.clear()
+        try:
+            replayed, trace = TangentReplay.make(model, values, names)
+        except ConfigError:  # not differentiable (a step with dt halved): the plain replay the stage would make
+            return model.simulate(values)
+        made.append(replayed)
+        return trace
+
+    return replay
+

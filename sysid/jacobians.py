@@ -11,12 +11,13 @@ import importlib
 import math
 import time
 import warnings as _warnings
+from dataclasses import dataclass
 from typing import Any, Mapping, Protocol, Sequence
 
 import numpy as np
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
-from sysid.observation import SENSOR_PARAMETERS, ObservationModel
+from sysid.observation import SENSOR_PARAMETERS, ObservationModel, SimTrace
 from sysid.replay_drive import drive_sensitivities
 
 JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
@@ -161,7 +162,7 @@ class SensitivityJacobian:
         t = time.perf_counter()
         try:
             sim = model.prepare(values)
-            traj, dX, dF, dQ = self._rollout(model, sim, names)
+            traj, dX, dF, dQ = rollout_with_tangents(model, sim, names)
         except ConfigError as err:
             _warnings.warn(f"sensitivity Jacobian unavailable for this replay ({err}); finite differences used",
                            stacklevel=2)
@@ -178,15 +179,6 @@ class SensitivityJacobian:
         if trace is not None:  # ... and their columns projected out
             J = model.gain_profile.project(model.predict_raw(trace), J)
         return self._with_difference_columns(problem, u, J, other, None)
-
-    def _rollout(self, model: ObservationModel, sim, names: Sequence[str]):
-        """One replay of ``model`` from the :meth:`~ObservationModel.prepare`'d ``sim`` with its tangents:
-        ``(trajectory, dX, dF, dQ)``, ``dQ`` the tangents of the position of an effector on a series drive
-        (:func:`sysid.replay_drive.drive_sensitivities`; None for a kinematic replay)."""
-        if math.isfinite(model.drive_stiffness):
-            return drive_sensitivities(model, sim, names)
-        traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), names, contact_force=True)
-        return traj, dX, dF, None
 
     def _split(self, problem: ReplayProblem) -> tuple[list[str], list[int]]:
         """Names with simulator sensitivities, and the indices of the parameters without them,
@@ -252,9 +244,15 @@ class SensitivityJacobian:
         extra = tuple(getattr(problem, "extra_specs", ()))
         if any(s.name in DIFFERENCE_PARAMETERS for s in extra):
             extra = ()
+        tangent_names = [*names, *(s.name for s in extra)]
+        made = getattr(problem, "made", None)
         sim = model.prepare(values)
         t = time.perf_counter()
-        traj, dX, dF, dQ = self._rollout(model, sim, [*names, *(s.name for s in extra)])
+        if made is not None and made.matches(model, values, tangent_names):  # made before the fit: taken once
+            problem.made = None
+            traj, dX, dF, dQ = made.rollout
+        else:
+            traj, dX, dF, dQ = rollout_with_tangents(model, sim, tangent_names)
         if problem.warm_start:  # the start of the next replays
             problem.last_positions = np.stack([s.x for s in traj.states])
         trace = model.trace_of(sim, traj.states, time.perf_counter() - t)
@@ -273,7 +271,7 @@ class SensitivityJacobian:
     def _whitened(self, problem: ReplayProblem, values: Mapping[str, float], sim, traj, dX: np.ndarray,
                   dF: np.ndarray, dQ: np.ndarray | None = None, extra: Sequence[Any] = ()) -> np.ndarray:
         """Whitened residual Jacobian ``(m, p)`` in the search coordinates from the state tangents (``dQ``: those
-        of the sensor's effector position on a series drive, :meth:`_rollout`); with ``extra`` parameter specs
+        of the sensor's effector position on a series drive, :func:`rollout_with_tangents`); with ``extra`` parameter specs
         (their tangents after the problem's, their values in ``values``) ``(m, p + len(extra))``."""
         model = problem.model
         obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor, effector_position=dQ)
@@ -287,6 +285,81 @@ class SensitivityJacobian:
                 d = cal.derivative(ch, d)
             blocks.append(model.whiten_derivative(ch, d))
         return np.concatenate(blocks, axis=0)
+
+
+def rollout_with_tangents(model: ObservationModel, sim, names: Sequence[str]):
+    """One replay of ``model`` from the :meth:`~ObservationModel.prepare`'d ``sim`` with its tangents:
+    ``(trajectory, dX, dF, dQ)``, ``dQ`` the tangents of the position of an effector on a series drive
+    (:func:`sysid.replay_drive.drive_sensitivities`; None for a kinematic replay).
+
+    Raises:
+        CalibrationError: the sensitivity module is missing.
+        ConfigError: a step the replay cannot differentiate (dt halved), an unknown parameter.
+        SimulationDivergedError: from the solver.
+    """
+    if math.isfinite(model.drive_stiffness):
+        return drive_sensitivities(model, sim, names)
+    traj, dX, dF = load_sensitivity().rollout_sensitivities(sim, model.controls_list(), names, contact_force=True)
+    return traj, dX, dF, None
+
+
+@dataclass
+class TangentReplay:
+    """A cold replay with its tangents, made before a fit and handed to the fit's first joint evaluation
+    (:meth:`SensitivityJacobian.joint`), which takes it instead of replaying where it is the same replay.
+
+    ``thinshell sysid`` makes the calibration's secant step (:func:`sysid.calibration_secant.secant_calibration`
+    ``last``) this way: the fit starts at the stick speed that step replayed, at the start's materials, so its first
+    joint replay was that replay again, for its tangents (10-14 % of a default fit of nominal_s101; docs/benchmarks_log.md,
+    session 54, s54-49time). A replay is a function of its parameters, its drive and the model's recording only when
+    it is cold (``model.warm_start`` None, the default since session 54), as both are.
+
+    Attributes:
+        values: every parameter the replay set or read, SI: the values it was given, and the model's nominal then of
+            every tangent name it was not given.
+        names: its tangent columns, in order (those the fit's joint replay asks for).
+        drive: the model's ``(drive_stiffness, drive_damping)`` during the replay.
+        rollout: ``(trajectory, dX, dF, dQ)`` of :func:`rollout_with_tangents`.
+    """
+
+    values: dict[str, float]
+    names: tuple[str, ...]
+    drive: tuple[float, float]
+    rollout: tuple
+
+    @classmethod
+    def make(cls, model: ObservationModel, values: Mapping[str, float], names: Sequence[str]
+             ) -> tuple["TangentReplay", SimTrace]:
+        """Replay ``model`` at ``values`` (SI; others at their nominal) cold, with the tangents of ``names``.
+
+        Returns:
+            the replay and its :class:`~sysid.observation.SimTrace` (without states), as a plain replay's.
+
+        Raises:
+            as :func:`rollout_with_tangents`; CalibrationError: a warm start is set (such a replay is not a
+            function of its parameters).
+        """
+        if getattr(model, "warm_start", None) is not None:
+            raise CalibrationError("TangentReplay.make: the model has a warm start; only a cold replay can be handed on")
+        sim = model.prepare(values)
+        t = time.perf_counter()
+        rollout = rollout_with_tangents(model, sim, list(names))
+        trace = model.trace_of(sim, rollout[0].states, time.perf_counter() - t)
+        return cls(cls._resolved(model, values, names), tuple(names),
+                   (float(model.drive_stiffness), float(model.drive_damping)), rollout), trace
+
+    @staticmethod
+    def _resolved(model: ObservationModel, values: Mapping[str, float], names: Sequence[str]) -> dict[str, float]:
+        return {n: float(values[n]) if n in values else float(model.parameter_value(n)) for n in (*values, *names)}
+
+    def matches(self, model: ObservationModel, values: Mapping[str, float], names: Sequence[str]) -> bool:
+        """Whether a cold replay of ``model`` at ``values`` with the tangents of ``names`` is this one: the same
+        tangent names in the same order, the same drive, every parameter bitwise the same (given or nominal)."""
+        if tuple(names) != self.names or getattr(model, "warm_start", None) is not None:
+            return False
+        if (float(model.drive_stiffness), float(model.drive_damping)) != self.drive:
+            return False
+        return self._resolved(model, values, (*self.values, *names)) == self.values
 
 
 def load_sensitivity() -> Any:

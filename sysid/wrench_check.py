@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from sysid.evidence import resample
+from sysid.runs import segments
 
 CLEAR_SIGMAS = 5.0
 """Both the tangential force and the markers' mean tangential displacement must stand this many of their noise
@@ -137,7 +138,8 @@ def check_wrench(evidence) -> WrenchCheck | None:
     cos_w[judged_w] = np.sum(f_t * u_t, axis=1)[judged_w] / norm[judged_w]
     judged = judged_w[window]
     cos = cos_w[window]
-    against, spans = _runs(judged & (cos < AGAINST_COSINE), t)
+    against = judged & (cos < AGAINST_COSINE)
+    spans = tuple((float(t[a]), float(t[b - 1])) for a, b in segments(against))
     agree = judged & ~against
     if against.any():
         return WrenchCheck(against, judged, spans, force[against].mean(axis=0), shear[against].mean(axis=0),
@@ -146,9 +148,3 @@ def check_wrench(evidence) -> WrenchCheck | None:
     nan3 = np.full(3, np.nan)
     return WrenchCheck(against, judged, (), nan3, nan3, math.nan,
                        float(np.median(cos[agree])) if agree.any() else math.nan)
-
-
-def _runs(flags: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, tuple[tuple[float, float], ...]]:
-    """``flags`` and its runs of consecutive True rows as ``(t_first, t_last)``, s."""
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], flags.astype(np.int8), [0]])))
-    return flags, tuple((float(t[a]), float(t[b - 1])) for a, b in zip(edges[::2], edges[1::2]))

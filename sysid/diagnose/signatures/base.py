@@ -16,6 +16,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from sysid.runs import segments
+
 TACTILE_CHANNELS = ("markers_xyz", "markers_uv", "wrench")
 
 
@@ -111,16 +113,6 @@ class SignatureResult:
 def not_applicable(effect: str, reason: str) -> SignatureResult:
     """A result for a test the recording cannot support."""
     return SignatureResult(effect=effect, applicable=False, reason=reason)
-
-
-def segments(mask: np.ndarray) -> list[tuple[int, int]]:
-    """Runs of True in a boolean array as half-open index pairs ``[(i0, i1), ...]``."""
-    m = np.asarray(mask, dtype=bool)
-    if m.size == 0:
-        return []
-    d = np.diff(np.concatenate([[0], m.astype(np.int8), [0]]))
-    starts, ends = np.nonzero(d == 1)[0], np.nonzero(d == -1)[0]
-    return list(zip(starts.tolist(), ends.tolist()))
 
 
 def dilate(mask: np.ndarray, t: np.ndarray, margin_s: float) -> np.ndarray:

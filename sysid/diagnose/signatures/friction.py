@@ -115,9 +115,10 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2 as chi2_law
 
 from sim_core.errors import BagReadError
-from sysid.diagnose.signatures.base import Recording, SignatureResult, normal_force, not_applicable, segments
+from sysid.diagnose.signatures.base import Recording, SignatureResult, normal_force, not_applicable
 from sysid.diagnose.signatures.sheet import plasticity_test, resolvable_set, set_rise
 from sysid.noise import robust_scale
+from sysid.runs import segments
 
 CONTACT_SIGMAS = 5.0
 """The gel is loaded where the compressive normal force exceeds this many sigmas of ``F_z``."""

@@ -22,8 +22,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from sysid.diagnose.signatures.base import (Recording, SignatureResult, dilate, marker_displacement,
-                                            not_applicable, predicted_contact, segments)
+                                            not_applicable, predicted_contact)
 from sysid.diagnose.signatures.timing import TAU_MAX_S
+from sysid.runs import segments
 
 FREE_MARGIN_S = 0.1
 """Margin around predicted contact that is not counted as free gel, s (transients of approach and

@@ -29,8 +29,9 @@ import numpy as np
 from scipy.stats import chi2 as chi2_law
 
 from sysid.diagnose.signatures.base import (Recording, SignatureResult, dilate, marker_displacement,
-                                            not_applicable, predicted_contact, segments, whitened_marker_offsets)
+                                            not_applicable, predicted_contact, whitened_marker_offsets)
 from sysid.diagnose.signatures.sensor import FREE_MARGIN_S, REST_DISPLACEMENT
+from sysid.runs import segments
 
 FINAL_WINDOW_S = 0.2
 """Length of the final free window of the permanent-set test, s."""
