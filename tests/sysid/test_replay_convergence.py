@@ -36,14 +36,19 @@ BOUND = 1e-3
 1e-4 m/s, 9x above the smooth change measured at 1e-7 m/s (wrench 1.1e-4 per 1e-5 of the modulus)."""
 
 
+def _model(t_max: float, arch: str) -> ObservationModel:
+    """nominal_s101's observation model over its first ``t_max`` s at the fit's 10 ms step (kinematic)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return ObservationModel(load_evidence(reference_bag("nominal_s101"), include_image="auto"), dt=0.01,
+                                t_max=t_max, arch=arch)
+
+
 @pytest.fixture(scope="module")
 def replays():
     """Whitened residuals of nominal_s101's first 2 s: at the modulus x (1 + 1e-5) and x (1 + 2e-5) with the replay
     tolerance, and the latter again solved to a tenth of it; with the model."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        model = ObservationModel(load_evidence(reference_bag("nominal_s101"), include_image="auto"), dt=0.01,
-                                 t_max=T_MAX, arch="cpu")
+    model = _model(T_MAX, "cpu")
 
     def residual(rel: float) -> np.ndarray:
         params = dict(SCENE, **{"gel.youngs_modulus": SCENE["gel.youngs_modulus"] * (1.0 + rel)})
@@ -65,10 +70,7 @@ def _rms(model: ObservationModel, a: np.ndarray, b: np.ndarray) -> dict[str, flo
 
 
 def test_replays_are_solved_to_the_replay_tolerance():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        model = ObservationModel(load_evidence(reference_bag("nominal_s101"), include_image="auto"), dt=0.01,
-                                 t_max=0.05, arch="numpy")
+    model = _model(0.05, "numpy")
     assert model.simulation().solver.config.tol_velocity == REPLAY_TOL_VELOCITY == 1e-7
 
 
