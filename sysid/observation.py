@@ -87,7 +87,7 @@ A step stops on a Newton update it does not apply, so its result is off the step
 ``tol_velocity * dt`` (1 um at the fit's 10 ms step with 1e-4), and whether a step ends one iteration earlier or later
 jumps with the parameters. Where the card slides on the table under the gel, its rigid motion is held by little but
 inertia and a saturated friction, and such a jump grows step by step: at 1e-4, nominal_s101 replayed (kinematic, first
-2 s) at gel moduli 1e-5 apart moved the markers by 0.0086 whitened RMS and the cost by -42 where its slope gives +3,
+2 s) at gel moduli 1e-5 apart moved the markers by 0.0085 whitened RMS and the cost by -42 where its slope gives +3,
 through the drive over the whole recording a step of 1e-4 in the modulus moved the cost 15x its slope; the cost at the
 scene's values moved by 0.14 % (kinematic) and 1.6 % (drive) from the converged one. Convergence study on that
 replay (cost at the scene's values, kinematic 2 s): 371,793 / 372,265 / 372,296 / 372,296.8 / 372,297.1 at 1e-4 /
