@@ -80,6 +80,21 @@ REPLAY_DT_HALVINGS = 4
 """Substep retries of a replay step whose Newton solve fails (``SolverConfig.dt_halvings_on_failure``):
 dt/2, dt/4, ... down to dt/16 before the replay gives up; ``Simulation.step_totals`` counts them."""
 
+REPLAY_TOL_VELOCITY = 1e-7
+"""Newton tolerance of every replay step (``SolverConfig.tol_velocity``, m/s; the simulator's default is 1e-4).
+
+A step stops on a Newton update it does not apply, so its result is off the step's minimiser by up to
+``tol_velocity * dt`` (1 um at the fit's 10 ms step with 1e-4), and whether a step ends one iteration earlier or later
+jumps with the parameters. Where the card slides on the table under the gel, its rigid motion is held by little but
+inertia and a saturated friction, and such a jump grows step by step: at 1e-4, nominal_s101 replayed (kinematic, first
+2 s) at gel moduli 1e-5 apart moved the markers by 0.0085 whitened RMS and the cost by -42 where its slope gives +3,
+through the drive over the whole recording a step of 1e-4 in the modulus moved the cost 15x its slope; the cost at the
+scene's values moved by 0.14 % (kinematic) and 1.6 % (drive) from the converged one. Convergence study on that
+replay (cost at the scene's values, kinematic 2 s): 371,793 / 372,265 / 372,296 / 372,296.8 / 372,297.1 at 1e-4 /
+1e-5 / 1e-6 / 1e-7 / 1e-8, no step stalled or relaxed at 1e-8: 1e-7 is converged to 1e-6 of the cost (the change to
+1e-8 is the rest), and the replay a smooth function of the parameters (markers 2e-5 whitened RMS per 1e-5 of the
+modulus, linear). About 20 % more CPU a replay (docs/benchmarks_log.md, session 55, s55-49rest)."""
+
 
 class ObservationWarning(UserWarning):
     """A channel cannot be fitted (absent from the recording, or not predictable)."""
@@ -367,11 +382,13 @@ class ObservationModel:
         return int(self.step_times_ns.shape[0] - 1)
 
     def simulation(self):
-        """The (cached) ``sim_core.simulation.Simulation`` of the scene at step ``dt``, retrying a failed
-        step in substeps (:data:`REPLAY_DT_HALVINGS`; counted in its ``step_totals``)."""
+        """The (cached) ``sim_core.simulation.Simulation`` of the scene at step ``dt``, each step solved to
+        :data:`REPLAY_TOL_VELOCITY`, retrying a failed step in substeps (:data:`REPLAY_DT_HALVINGS`; counted in its
+        ``step_totals``)."""
         if self._sim is None:
             # the backend starts (Taichi initialised once) with the solver; ConfigError names a problem
-            config = SolverConfig(backend=backend_of_arch(self.arch), dt_halvings_on_failure=REPLAY_DT_HALVINGS)
+            config = SolverConfig(backend=backend_of_arch(self.arch), dt_halvings_on_failure=REPLAY_DT_HALVINGS,
+                                  tol_velocity=REPLAY_TOL_VELOCITY)
             model = build_task_scene(self.scene, self._base_dir) if self.task else load_scene(self.scene)
             self._sim = Simulation(model, dt=self.dt, solver_config=config)
             if self.task:
