@@ -111,9 +111,8 @@ class FitOptions:
             docs/benchmarks_log.md, session 51, 49sysdrive.)
         tack: where the recording shows the card carried by the gel (a lift), make the gel's tack part of the
             nominal model, released at the recorded peel, with its compliant shear layer fitted from the carried card
-            where it follows better (:func:`sysid.tack.nominal_tack`), then refitted at each fit's materials and the
-            materials fitted again until ``k_t`` settles within its sigma (:func:`sysid.tack.refit_layer`, at most
-            :data:`sysid.tack.LAYER_ROUNDS` fits; ``k_t``'s sigma enters the materials' robust sigma as a nuisance);
+            where it follows better (:func:`sysid.tack.nominal_tack`), then its ``k_t`` fitted jointly with the
+            materials (its tangent column; each channel weighed by its gap at the fit's start);
             fit.json ``diagnostics.tack`` says what was decided and why. False (the default): no tack, a lift's card
             stays on the table in every replay (nominal_s109's sheet points at whitened RMS 82 at the engine's
             values; 7.6 with the layer). Not the default: not validated from starts 30 % off
