@@ -534,7 +534,7 @@ class StepLinearization:
             for p in self.contact_terms:
                 if isinstance(p, LaggedFriction):
                     out += p.gradient(self.x) / self.model.contact.stiffness
-                else:
+                elif not isinstance(p, LaggedAdhesion):  # the bonds' law holds no contact stiffness
                     out += p.parameter_gradient(self.x, "stiffness")
         if name == "contact.eps_v" and self.friction is not None:
             out += self.friction.eps_v_gradient(self.x)

@@ -20,6 +20,12 @@ from tests.support.fd import relative_error
 K_T = "candidate.adhesion.shear_stiffness"
 PARAMS = [K_T, "sheet.bending_stiffness"]
 VALUES = {K_T: 2.0, "sheet.bending_stiffness": 2e-4}
+TOLERANCE = {K_T: 1e-5, "sheet.bending_stiffness": 1e-3}
+"""Relative error of each checked column (measured 4e-7 and 9e-5). The tangents hold what a bond's formation step
+fixes: the closest-point weights of a new pair and the anchor's barycentric weights (of the positions where it
+formed). Where a parameter moves those (the contact stiffness: how deep the gel presses when the bonds form) its
+column is 1e-3 off in the step they form and 3 % after the lift (2e-7 without the tack); it is propagated in the
+fixture (the bonds are no term of the contact stiffness) but not checked here."""
 BETA = 0.05  # N a pair: holds the card's corner (0.04 x 0.03 x 0.3 mm at 700 kg/m^3 weighs 2.5 mN) up to the end
 
 
@@ -42,7 +48,7 @@ def _controls() -> list[Control]:
 @pytest.fixture(scope="module")
 def tangents():
     sim = _sim()
-    traj, dX, dF = rollout_sensitivities(sim, _controls(), PARAMS, contact_force=True)
+    traj, dX, dF = rollout_sensitivities(sim, _controls(), [*PARAMS, "contact.stiffness"], contact_force=True)
     return sim, traj, dX, dF
 
 
@@ -68,7 +74,7 @@ def test_positions_and_contact_force_tangents_match_central_differences(tangents
     force = lambda tr: np.stack([s.contact_force for s in tr.states])  # noqa: E731
     fd_f = (force(plus) - force(minus)) / (2 * h)
     assert np.abs(fd_x[-1]).max() > 0 and np.abs(fd_f[-1]).max() > 0
-    tol = 1e-5 if name == K_T else 1e-3  # the material's difference meets the contact set's switches sooner
+    tol = TOLERANCE[name]
     for t in range(1, len(fd_x)):
         assert relative_error(dX[t, :, :, j], fd_x[t]) < tol, (name, t)
     assert relative_error(dF[-1, :, :, j], fd_f[-1]) < tol
