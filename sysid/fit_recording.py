@@ -115,8 +115,8 @@ class FitOptions:
             materials (its tangent column; each channel weighed by its gap at the fit's start);
             fit.json ``diagnostics.tack`` says what was decided and why. False (the default): no tack, a lift's card
             stays on the table in every replay (nominal_s109's sheet points at whitened RMS 82 at the engine's
-            values; 7.6 with the layer). Not the default: not validated from starts 30 % off
-            (docs/benchmarks_log.md, session 54, s54-49lift).
+            values; 7.6 with the layer). Not the default: from starts 30 % off on nominal_s109 the bending
+            lands +12 to +27 % and the friction -21 to -30 % (docs/benchmarks_log.md, session 55, s55-49lift).
         hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely
