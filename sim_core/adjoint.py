@@ -29,6 +29,12 @@ What depends on what (and what is treated as constant):
   :func:`theta_stiffness`) and bending plasticity ``theta_bar^{n+1} = theta - Y sign(theta - theta_bar^n)`` where
   ``|theta - theta_bar^n| > Y`` (yielding branch: d/dx = dtheta/dx, d/dY = -sign), else
   ``theta_bar^n`` (identity); theta_bar enters the bending gradient as ``-(dtheta/dx)^T A``.
+- a candidate's adhesion bonds (:class:`~sim_core.candidates.adhesion.LaggedAdhesion`): a contact term of the step
+  (its Hessian in the contact-force tangent, as its force is in the step's contact force); the parameters it
+  declares (``candidate_parameters``: the bond strength ``candidate.adhesion``, the compliant layer's
+  ``candidate.adhesion.shear_stiffness``) enter through its ``parameter_gradient``; its lagged normals (an
+  anchored bond's: its triangle's at ``x^n``) through ``normal_state_product`` in :meth:`StepLinearization.state_rhs`;
+  its pair set and anchors are held like the contact pair set.
 - non-differentiable, held fixed within a step: the contact pair set, the remembered sides, the
   Voronoi regions of the closest points, the active/inactive state of each penalty (the derivative
   is that of the branch the converged step is on), the yielding set.
@@ -52,6 +58,7 @@ import scipy.sparse as sp
 from sim_core.adjoint_effectors import (  # noqa: F401
     LIMITED_POSE_FD_STEP, command_jacobian, driven_jacobian, effector_pullback, rotation_derivative)
 from sim_core.adjoint_friction import FrictionRows, friction_rows, friction_state_jacobian  # noqa: F401
+from sim_core.candidates.adhesion import LaggedAdhesion
 from sim_core.contact_set import ContactSet
 from sim_core.control import Control
 from sim_core.elastic import ElasticTerms
@@ -220,12 +227,14 @@ def _mass_parameter_body(model: Model, name: str) -> tuple[str, float] | None:
 
 
 def check_parameters(model: Model, params: Sequence[str]) -> list[str]:
-    """Validate parameter names against ``model.parameter_names``.
+    """Validate parameter names against ``model.parameter_names`` and the model's candidate parameters that
+    a step term differentiates (:attr:`~sim_core.candidates.adhesion.LaggedAdhesion.candidate_parameters`).
 
     Raises:
         ConfigError: unknown name (the known names are listed).
     """
-    known = model.parameter_names
+    known = model.parameter_names + [name for name in LaggedAdhesion.candidate_parameters
+                                     if name.partition(".")[2] in model.candidates]
     for p in params:
         if p not in known:
             raise ConfigError(f"adjoint: unknown parameter {p!r}; known: {known}")
@@ -316,7 +325,7 @@ class StepLinearization:
         self.mass = vertex_mass
         self.free = np.asarray(record.free_dofs, dtype=bool)
         self.contact_terms = [p for p in record.terms if isinstance(
-            p, (VertexTriangleContact, EdgeEdgeContact, PlaneContact, SphereContact, LaggedFriction))]
+            p, (VertexTriangleContact, EdgeEdgeContact, PlaneContact, SphereContact, LaggedFriction, LaggedAdhesion))]
         self._H: sp.csr_matrix | None = None
         self._H_contact: sp.csr_matrix | None = None
         self._contact_rhs: dict[str, np.ndarray] = {}  # contact_parameter_rhs per parameter name
@@ -331,6 +340,7 @@ class StepLinearization:
             self.solver = make_linear_solver(linear_solver) if isinstance(linear_solver, str) else linear_solver
             self.solver.factorize(Hc)
         self.friction = next((p for p in record.terms if isinstance(p, LaggedFriction)), None)
+        self.adhesion = [p for p in self.contact_terms if isinstance(p, LaggedAdhesion)]
         self.rows = friction_rows(model, contact, state, self.friction) if self.friction is not None else None
         self.friction_J = friction_state_jacobian(self.rows, self.x) if self.rows is not None else None
         # bending: per sheet, hinge stiffness, dtheta/dx at x^{n+1}, plastic yielding set.
@@ -444,6 +454,8 @@ class StepLinearization:
         """
         out = self._xn_coefficient()[:, None, None] * dxn - (self.mass / self.dt)[:, None, None] * dvn
         out += self._friction_apply(dxn)
+        for p in self.adhesion:
+            out += p.normal_state_product(self.x, self.x_n, dxn)
         for name, (pot, gt, _, _) in self.bending.items():
             if name in dtb:
                 coef = -_theta_stiffness_product(pot, dtb[name])  # (h, r)
@@ -454,6 +466,8 @@ class StepLinearization:
     def state_vjp(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Transpose of :meth:`state_rhs`: ``(w^T dg/dx^n, w^T dg/dv^n, {sheet: w^T dg/dtheta_bar})``."""
         ax = self._xn_coefficient()[:, None] * w + self._friction_apply_T(w)
+        for p in self.adhesion:
+            ax += p.normal_state_vjp(self.x, self.x_n, w)
         av = -(self.mass / self.dt)[:, None] * w
         atb = {}
         for name, (pot, gt, _, _) in self.bending.items():
@@ -578,10 +592,14 @@ class StepLinearization:
             for p in self.contact_terms:
                 if isinstance(p, LaggedFriction):
                     out += p.gradient(self.x) / self.model.contact.stiffness
-                else:
+                elif not isinstance(p, LaggedAdhesion):  # the bonds' law holds no contact stiffness
                     out += p.parameter_gradient(self.x, "stiffness")
         if name == "contact.eps_v" and self.friction is not None:
             out += self.friction.eps_v_gradient(self.x)
+        for p in self.contact_terms:  # a candidate's bonds: the global parameters they declare
+            local = getattr(p, "candidate_parameters", {}).get(name)
+            if local is not None and local in p.parameter_names:
+                out += p.parameter_gradient(self.x, local)
         if name.startswith("friction.") and self.rows is not None:
             key = self.model._friction_key(name)
             mask = np.array([pair == key for pair in self.rows.body_pairs])
@@ -592,7 +610,7 @@ class StepLinearization:
     def contact_force_tangent(self, dx_new: np.ndarray, dxn: np.ndarray, dparam: np.ndarray) -> np.ndarray:
         """Tangent of the end-of-step contact + friction force ``f = -(g_contact + g_friction)(x^{n+1})``.
 
-        ``df = -(H_contact dx^{n+1} + dg_friction/dx^n dx^n + dg_contact/dp dp)``.
+        ``df = -(H_contact dx^{n+1} + d(g_friction + g_adhesion)/dx^n dx^n + dg_contact/dp dp)``.
 
         Args:
             dx_new, dxn: tangents of ``x^{n+1}`` and ``x^n``, shape ``(n, 3, r)``.
@@ -601,7 +619,10 @@ class StepLinearization:
         Returns:
             shape ``(n, 3, r)``, N per unit tangent.
         """
-        return -(self.contact_hessian_product(dx_new) + self._friction_apply(dxn) + dparam)
+        out = -(self.contact_hessian_product(dx_new) + self._friction_apply(dxn) + dparam)
+        for p in self.adhesion:
+            out -= p.normal_state_product(self.x, self.x_n, dxn)
+        return out
 
     # ------------------------------------------------------------ plasticity
     def plastic_tangent(self, dx_new: np.ndarray, dtb: dict[str, np.ndarray], dyield: dict[str, np.ndarray]):

@@ -39,7 +39,7 @@ from sysid.jacobians import TangentReplay, make_jacobian
 from sysid.observation import ObservationModel, SimTrace
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
-from sysid.tack import LAYER_ROUNDS, SHEAR_STIFFNESS_SETTING, layer_log_sigma, nominal_tack, refit_layer
+from sysid.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
 from sysid.wrench_check import check_wrench
 
 
@@ -112,13 +112,12 @@ class FitOptions:
             docs/benchmarks_log.md, session 51, 49sysdrive.)
         tack: where the recording shows the card carried by the gel (a lift), make the gel's tack part of the
             nominal model, released at the recorded peel, with its compliant shear layer fitted from the carried card
-            where it follows better (:func:`sysid.tack.nominal_tack`), then refitted at each fit's materials and the
-            materials fitted again until ``k_t`` settles within its sigma (:func:`sysid.tack.refit_layer`, at most
-            :data:`sysid.tack.LAYER_ROUNDS` fits; ``k_t``'s sigma enters the materials' robust sigma as a nuisance);
+            where it follows better (:func:`sysid.tack.nominal_tack`), then its ``k_t`` fitted jointly with the
+            materials (its tangent column; each channel weighed by its gap at the fit's start);
             fit.json ``diagnostics.tack`` says what was decided and why. False (the default): no tack, a lift's card
             stays on the table in every replay (nominal_s109's sheet points at whitened RMS 82 at the engine's
-            values; 7.6 with the layer). Not the default: not validated from starts 30 % off
-            (docs/benchmarks_log.md, session 54, s54-49lift).
+            values; 7.6 with the layer). Not the default: from starts 30 % off on nominal_s109 the bending
+            lands +12 to +27 % and the friction -21 to -30 % (docs/benchmarks_log.md, session 55, s55-49lift).
         hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely
@@ -365,9 +364,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     secant = stage.names if stage is not None and stage.accepted else ()
     fitted = [*options.params, *(n for n in secant if n not in options.params)]
     nuisance = nuisance_of(model, options)
-    alternate = tack is not None and layer_on and SHEAR_STIFFNESS_SETTING not in options.params
-    if alternate:  # the layer held in the fit, its uncertainty carried into the materials' robust sigma
-        nuisance[SHEAR_STIFFNESS_SETTING] = layer_log_sigma(tack)
+    if layer_on and SHEAR_STIFFNESS_SETTING not in fitted:  # the layer's k_t fitted with the materials (its tangent
+        fitted.append(SHEAR_STIFFNESS_SETTING)  # column): held or alternated, it kept the start's (sysid.tack)
     # with the layer, the carried card's sheet points (80 % of the residuals, whitened RMS 7 at the engine's values on
     # nominal_s109: the layer's form error) would drive the materials (s109 from -30 %: modulus -64 %, -23 % weighed);
     # each channel is weighed by its gap at the fit's start (sysid.fit.fit reweight_channels)
@@ -378,16 +376,9 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                     stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
                     batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
                     stop_trial_robust=options.stop_trial_robust, hold_unidentified=options.hold_unidentified,
-                    first_step=options.first_step, reweight_channels=alternate)
+                    first_step=options.first_step, reweight_channels=layer_on)
     result = fit(model, fitted, nuisance=nuisance, made=made.pop() if made else None, **fit_args)
     fit_replays = [result.sim_runs]
-    for _ in range(LAYER_ROUNDS - 1 if alternate else 0):  # k_t at the fitted materials, then the materials again
-        tack, moved = refit_layer(model, tack, dict(result.values))
-        if not moved:
-            break
-        nuisance[SHEAR_STIFFNESS_SETTING] = layer_log_sigma(tack)
-        result = fit(model, fitted, initial=dict(result.values), nuisance=nuisance, **fit_args)
-        fit_replays.append(result.sim_runs)
     result.warnings[:0] = list(notes)
     if wrench is not None and wrench.tripped:
         result.warnings.append(wrench.message(str(bag)))

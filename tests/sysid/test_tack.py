@@ -135,25 +135,27 @@ def test_a_lift_fold_reads_the_concealed_shear_compliance_of_the_tack_back(lift_
     print(decision.why, layer.profile)
 
 
-def test_the_layer_refitted_at_other_materials_comes_back(lift_fold):
-    """A layer fitted where the materials were off (k_t 1.8 N/m, as a start's materials leave it) and refitted at the
-    fitted materials (here the truth) comes back within 25 % of the concealed k_t, becomes the model's nominal and is
-    recorded as a second round."""
-    import dataclasses
-
-    from sysid.tack import SHEAR_STIFFNESS_SETTING, layer_log_sigma, refit_layer
+def test_the_layer_fitted_jointly_with_the_bending_from_starts_off_comes_back(lift_fold):
+    """``k_t`` and the card's bending stiffness fitted together (as ``thinshell sysid --tack`` does, ``k_t``'s column
+    its tangent) from a layer left at 1.8 N/m and a bending 30 % stiff (where a start's materials left them when the
+    layer was held or alternated) come back: the bending within 5 % of the truth, ``k_t`` more than half-way to the
+    concealed 1 N/m in log, with the truth inside its robust 2-sigma interval (measured: 7 replays, k_t 1.27 +- 0.20,
+    bending +3.2 % +- 1.5 %: 2.1 sigma, the small bag's layer search itself reads 0.83 at the truth)."""
+    from sysid.fit import fit
+    from sysid.tack import SHEAR_STIFFNESS_SETTING
 
     model, decision = lift_fold
-    off = dataclasses.replace(decision, params={**decision.params, SHEAR_STIFFNESS_SETTING: 1.8},
-                              rounds=((1.8, decision.layer.log_sigma),))
-    model.set_nominal({SHEAR_STIFFNESS_SETTING: 1.8})
-    back, moved = refit_layer(model, off, dict(TRUE_PARAMS))
-    assert moved, back.rounds
-    k = back.params[SHEAR_STIFFNESS_SETTING]
-    assert k == pytest.approx(K_TRUE, rel=0.25), back.layer.profile
-    assert model.parameter_value(SHEAR_STIFFNESS_SETTING) == k and len(back.rounds) == 2
-    assert layer_log_sigma(back) >= abs(np.log(k / 1.8))  # the move is part of the layer's uncertainty
-    model.set_nominal({SHEAR_STIFFNESS_SETTING: decision.params[SHEAR_STIFFNESS_SETTING]})  # the fixture's again
+    bending = "sheet.bending_stiffness"
+    try:
+        model.set_nominal({SHEAR_STIFFNESS_SETTING: 1.8})
+        result = fit(model, [SHEAR_STIFFNESS_SETTING, bending], jacobian="sensitivity", warm_start=False,
+                     initial={SHEAR_STIFFNESS_SETTING: 1.8, bending: 1.3 * TRUE_PARAMS[bending]}, max_replays=8)
+    finally:
+        model.set_nominal({SHEAR_STIFFNESS_SETTING: decision.params[SHEAR_STIFFNESS_SETTING]})  # the fixture's again
+    k, d = result.values[SHEAR_STIFFNESS_SETTING], result.values[bending]
+    assert d == pytest.approx(TRUE_PARAMS[bending], rel=0.05)
+    assert abs(np.log(k / K_TRUE)) < 0.5 * abs(np.log(1.8 / K_TRUE))
+    assert abs(k - K_TRUE) < 2 * result.sigma_robust[SHEAR_STIFFNESS_SETTING]
 
 
 def test_rows_per_datum_is_the_residual_correlation_time():
