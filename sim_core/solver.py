@@ -552,6 +552,8 @@ class NewtonSolver:
                     info.simplified_stops = 1
                     step.last_update = d_bar
                     accept(self.config, info, it, residual_bar, "simplified")
+                    if cfg.apply_last_update:  # the simplified correction is -H(x_{k-1})^{-1} g(x_k)
+                        x = x - d_bar.reshape(-1, 3)
                     return x, H, projection, factorization
             active_before = None
             d, H, projection, factorization = self._newton_direction(step, x, g, contact_terms, it, info)
@@ -561,6 +563,12 @@ class NewtonSolver:
             history.append(residual)
             reason = stop_reason(self.config, residual, g, history)
             if reason is not None:
+                if cfg.apply_last_update and reason in STRICT_STOPS:
+                    # the update just solved for, taken in full (no line search: a step this small is in the
+                    # quadratic region); a stalled stop keeps x (its update is round-off, SolverConfig.apply_last_update)
+                    step.last_update = d
+                    accept(self.config, info, it, residual, reason)
+                    return x + d3, H, projection, factorization
                 if not (guessed and it == 1):
                     step.last_update = d if reason in STRICT_STOPS else None
                     accept(self.config, info, it, residual, reason)

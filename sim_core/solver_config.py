@@ -87,6 +87,20 @@ class SolverConfig:
             it at (the same states bit for bit). ``x_k`` is the step's result; the kept Newton
             matrix is the one at ``x_{k-1}`` (``StepRecord.hessian_exact`` False: the adjoint
             assembles the exact Hessian at ``x``). 0 turns it off.
+        apply_last_update: end a step that a strict test accepts (``"velocity"``, ``"force"``, ``"simplified"``)
+            at ``x_k + d_k``, its last Newton update (or simplified correction) applied, instead of at ``x_k``. The
+            default test measures ``d_k`` and stops without it, so the result is off the step's minimiser by about
+            ``|d_k|`` (up to ``tol_velocity * dt``), and whether a step stops one iteration earlier or later jumps
+            with the parameters (nominal_s101's sliding card amplifies such a jump 10x a step: docs/benchmarks_log.md,
+            session 55). Applied, the error is second order: ``O(|d_k|^2)`` with the exact Hessian (the full
+            step is the Newton step), ``O(|d_k| |x_k - x_{k-1}|)`` for the simplified correction (the matrix of
+            ``x_{k-1}``), and a contraction of ``|d_k|`` with a projected one; so a looser tolerance gives the
+            same result. No line search (``|d_k| <= tol_velocity * dt``, the quadratic region, as for a guess
+            already within the tolerance). The kept Newton matrix is that of ``x_k`` (within ``|d_k|`` of the
+            result; as with ``rate_stopping``). Not applied: a ``"stalled"`` stop (a residual that no longer
+            drops is round-off, its update noise) and a failed line search's acceptances (the update did not
+            lower the energy). Off by default (the simulator's own results as before); sysid's replays turn it
+            on (:data:`sysid.observation.REPLAY_APPLY_LAST_UPDATE`). Not in a lockstep batch.
         dt_halvings_on_failure: a step whose Newton solve fails (:class:`SimulationDivergedError`)
             is redone from its start as 2, 4, ... substeps of dt/2, dt/4, ..., at most this many
             times, so the smallest substep is ``dt / 2**dt_halvings_on_failure``; the step raises
@@ -171,6 +185,7 @@ class SolverConfig:
     backend: str = "numpy"
     rate_stopping: bool = False
     dt_halvings_on_failure: int = 0
+    apply_last_update: bool = False
     stale_side_backtracks: int = 10
     simplified_newton_check: float = 0.25
     lockstep: bool = False

@@ -96,6 +96,11 @@ replay (cost at the scene's values, kinematic 2 s): 371,793 / 372,265 / 372,296 
 modulus, linear). About 20 % more CPU a replay (docs/benchmarks_log.md, session 55, s55-49rest)."""
 
 
+REPLAY_APPLY_LAST_UPDATE = True
+"""Every replay step ends with its last Newton update applied (``SolverConfig.apply_last_update``): the stop's error
+second order in that update instead of the update itself (docs/benchmarks_log.md, session 55, s55-49stop)."""
+
+
 class ObservationWarning(UserWarning):
     """A channel cannot be fitted (absent from the recording, or not predictable)."""
 
@@ -388,7 +393,7 @@ class ObservationModel:
         if self._sim is None:
             # the backend starts (Taichi initialised once) with the solver; ConfigError names a problem
             config = SolverConfig(backend=backend_of_arch(self.arch), dt_halvings_on_failure=REPLAY_DT_HALVINGS,
-                                  tol_velocity=REPLAY_TOL_VELOCITY)
+                                  tol_velocity=REPLAY_TOL_VELOCITY, apply_last_update=REPLAY_APPLY_LAST_UPDATE)
             model = build_task_scene(self.scene, self._base_dir) if self.task else load_scene(self.scene)
             self._sim = Simulation(model, dt=self.dt, solver_config=config)
             if self.task:
