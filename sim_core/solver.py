@@ -505,8 +505,9 @@ class NewtonSolver:
         cand_dynamic = cand_contact + [p for p in cand_body if not any(p is q for q in fused_body)]
         # the simplified Newton test (SolverConfig.simplified_newton_check): only with penalty-like contacts
         # whose switches the test compares (the library's, a candidate's adhesion) and lagged friction (a
-        # candidate's stiction may switch within a step; a body term is not compared)
-        simplified = (cfg.simplified_newton_check > 0 and not cand_body
+        # candidate's stiction may switch within a step; a body term is not compared); not where the last update
+        # is applied (SolverConfig.apply_last_update: the correction of the previous matrix is not second order)
+        simplified = (cfg.simplified_newton_check > 0 and not cfg.apply_last_update and not cand_body
                       and all(declares(p, PenaltyContact) for p in cand_contact)
                       and (friction is None or isinstance(friction, LaggedFriction)))
         step = StepTerms(
@@ -552,8 +553,6 @@ class NewtonSolver:
                     info.simplified_stops = 1
                     step.last_update = d_bar
                     accept(self.config, info, it, residual_bar, "simplified")
-                    if cfg.apply_last_update:  # the simplified correction is -H(x_{k-1})^{-1} g(x_k)
-                        x = x - d_bar.reshape(-1, 3)
                     return x, H, projection, factorization
             active_before = None
             d, H, projection, factorization = self._newton_direction(step, x, g, contact_terms, it, info)
