@@ -88,23 +88,22 @@ class SolverConfig:
             matrix is the one at ``x_{k-1}`` (``StepRecord.hessian_exact`` False: the adjoint
             assembles the exact Hessian at ``x``). 0 turns it off; ``apply_last_update`` too.
         apply_last_update: end a step that a strict test accepts (``"velocity"``, ``"force"``) at ``x_k + d_k``,
-            its last Newton update applied, instead of at ``x_k``. The
-            default test measures ``d_k`` and stops without it, so the result is off the step's minimiser by about
-            ``|d_k|`` (up to ``tol_velocity * dt``), and whether a step stops one iteration earlier or later jumps
-            with the parameters (nominal_s101's sliding card amplifies such a jump 10x a step: docs/benchmarks_log.md,
-            session 55). Applied, the error is second order: ``O(|d_k|^2)`` with the exact Hessian (the full
-            step is the Newton step) and a contraction of ``|d_k|`` with a projected one; so a looser tolerance
-            gives the same result. The simplified Newton test (``simplified_newton_check``) is then not run: its
-            correction, solved with the previous iterate's matrix, is not second order where the lagged friction's
-            stiffness changes between iterates (the press-slide card of
-            tests/sim_core/test_applied_update.py,
-            first pressed step: 9.4e-9 m off the minimiser applied, 6.6e-9 not, 0 with the ordinary update).
-            No line search (``|d_k| <= tol_velocity * dt``, the quadratic region, as for a guess
-            already within the tolerance). The kept Newton matrix is that of ``x_k`` (within ``|d_k|`` of the
-            result; as with ``rate_stopping``). Not applied: a ``"stalled"`` stop (a residual that no longer
-            drops is round-off, its update noise) and a failed line search's acceptances (the update did not
-            lower the energy). Off by default (the simulator's own results as before); sysid's replays turn it
-            on (:data:`sysid.observation.REPLAY_APPLY_LAST_UPDATE`). Not in a lockstep batch.
+            its last Newton update applied, instead of at ``x_k``. The default test measures ``d_k`` and stops
+            without it, so the result is off the step's minimiser by about ``|d_k|`` (up to ``tol_velocity * dt``),
+            and whether a step stops one iteration earlier or later jumps with the parameters (nominal_s101's
+            sliding card amplifies such a jump 10x a step: docs/benchmarks_log.md, session 55). Applied, the
+            error is second order: ``O(|d_k|^2)`` with the exact Hessian (the full step is the Newton step) and a
+            contraction of ``|d_k|`` with a projected one. No line search (``|d_k| <= tol_velocity * dt``, the
+            quadratic region, as for a guess already within the tolerance). The kept Newton matrix is that of
+            ``x_k`` (within ``|d_k|`` of the result, as with ``rate_stopping``). The simplified Newton test
+            (``simplified_newton_check``) is then not run: its correction, solved with the previous iterate's
+            matrix, is not second order where the lagged friction's stiffness changes between iterates (the
+            press-slide card of tests/sim_core/test_applied_update.py, first pressed step: 9.4e-9 m off the
+            minimiser applied, 6.6e-9 m not, 0 with the ordinary update). Not applied: a ``"stalled"`` stop (a
+            residual that no longer drops is round-off, its update noise) and a failed line search's acceptances
+            (the update did not lower the energy). Off by default (the simulator's own results as before);
+            sysid's replays turn it on (:data:`sysid.observation.REPLAY_APPLY_LAST_UPDATE`). A lockstep batch
+            (``lockstep``) ignores it: its copies stop as by default.
         dt_halvings_on_failure: a step whose Newton solve fails (:class:`SimulationDivergedError`)
             is redone from its start as 2, 4, ... substeps of dt/2, dt/4, ..., at most this many
             times, so the smallest substep is ``dt / 2**dt_halvings_on_failure``; the step raises
