@@ -174,9 +174,23 @@ def _copies(model: Any, sets: list[dict], before_prepare: Callable[[Any], None] 
             before_prepare(model)
         sim = model.prepare(p)  # the cached simulation with this set's values, reset (ConfigError: bad values)
         offsets.append(model.normal_offset)
-        sims.append(Simulation(copy.deepcopy(sim.model), dt=model.dt,
-                               solver_config=dataclasses.replace(sim.solver.config, lockstep=True)))
+        sims.append(Simulation(copy.deepcopy(sim.model), dt=model.dt, solver_config=_lockstep_config(sim.solver.config)))
     return sims, offsets
+
+
+LOCKSTEP_TOL_VELOCITY = 1e-7
+"""Newton tolerance (m/s) of a lockstep copy whose replay applies its last update (``SolverConfig.apply_last_update``,
+which the lockstep ignores): the tolerance at which a replay that stops without it is converged (nominal_s101,
+docs/benchmarks_log.md, session 55, s55-49rest)."""
+
+
+def _lockstep_config(config: Any) -> Any:
+    """The lockstep copies' solver settings from a replay's ``SolverConfig``: its tolerance, or
+    :data:`LOCKSTEP_TOL_VELOCITY` where the replay applies its last update (the lockstep stops without it)."""
+    if config.apply_last_update:
+        return dataclasses.replace(config, lockstep=True, apply_last_update=False,
+                                   tol_velocity=min(config.tol_velocity, LOCKSTEP_TOL_VELOCITY))
+    return dataclasses.replace(config, lockstep=True)
 
 
 def replay_batch_sizing(model: Any, cap: int | None = None) -> Any:
