@@ -564,7 +564,8 @@ class NewtonSolver:
             if reason is not None:
                 if cfg.apply_last_update and reason in STRICT_STOPS:
                     # the update just solved for, taken in full (no line search: a step this small is in the
-                    # quadratic region); a stalled stop keeps x (its update is round-off, SolverConfig.apply_last_update)
+                    # quadratic region); a stalled stop keeps x (its update is round-off;
+                    # SolverConfig.apply_last_update)
                     step.last_update = d
                     accept(self.config, info, it, residual, reason)
                     return x + d3, H, projection, factorization

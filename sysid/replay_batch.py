@@ -174,7 +174,8 @@ def _copies(model: Any, sets: list[dict], before_prepare: Callable[[Any], None] 
             before_prepare(model)
         sim = model.prepare(p)  # the cached simulation with this set's values, reset (ConfigError: bad values)
         offsets.append(model.normal_offset)
-        sims.append(Simulation(copy.deepcopy(sim.model), dt=model.dt, solver_config=_lockstep_config(sim.solver.config)))
+        sims.append(Simulation(copy.deepcopy(sim.model), dt=model.dt,
+                               solver_config=_lockstep_config(sim.solver.config)))
     return sims, offsets
 
 

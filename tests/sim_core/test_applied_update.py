@@ -4,7 +4,8 @@ The default stopping test measures the update ``d_k`` at ``x_k`` and stops at ``
 minimiser by about ``|d_k|`` (up to ``tol_velocity * dt``). Applied, the error is ``O(|d_k|^2)`` (a full Newton step
 with the exact Hessian). Checked on the press-slide card of ``test_adjoint`` (penalty contact with the table and the
 gel, lagged friction, damping): every step started from the converged trajectory's state and
-solved at the simulator's default 1e-4 m/s, with and without the update, against the same step solved to 1e-9 m/s (its own error below 5e-12 m).
+solved at the simulator's default 1e-4 m/s, with and without the update, against the same step solved to
+1e-9 m/s (its own error below 5e-12 m).
 The distance to that minimiser is ``H^{-1} g`` of the result: the step's gradient in the metric of its Hessian.
 """
 
