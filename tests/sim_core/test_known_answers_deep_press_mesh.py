@@ -6,10 +6,11 @@ Green-strain gel (Saint Venant-Kirchhoff, StVK). Forward replays of this simulat
 of ``tests/sysid/simbag.py``, ``DEEP_PRESS_SLIDE`` of ``tests/sysid/test_gel_law.py``: 1.25 mm down, 7.5-10 N, then
 2 mm of slip at 0.8 friction) on refined gel meshes (benchmarks log, session 55, s55-49depth) separate the two:
 
-- The default law is mesh-converged on the default mesh ``[8, 6, 5]``: the normal stiffness ``K = F_z / mean marker
-  sink`` (N/m) pressed and at the slide's end is within 2.4 % of the four-layer mesh refined in-plane ``[14, 11, 5]``
-  and of the eight-layer mesh ``[8, 6, 9]`` (``[14, 11, 9]`` and ``[20, 15, 9]``: the log). The depth scale it
-  leaves is the law's: its K rises by 15 % once the slide begins, the engine's falls by 27 %.
+- The default law on the default mesh ``[8, 6, 5]``: the normal stiffness ``K = F_z / mean marker sink`` (N/m)
+  pressed and at the slide's end is 5.4-5.7 % above the mesh refined 1.8x in every direction ``[14, 11, 9]``
+  (2.4 % above ``[14, 11, 5]`` and ``[8, 6, 9]``: the log), the linear tets' known locking at nu = 0.45, and the
+  slide / press ratio is the same on both meshes to 0.4 %. The depth scale it leaves is the law's: its K rises by
+  15 % once the slide begins, the engine's falls by 27 %.
 - The Green-strain law is not converged by any mesh in the slide: StVK's stress in compression has its maximum at
   the stretch ``1/sqrt(3)`` (uniaxially ``P = (lam + 2 mu) l (l^2 - 1) / 2``; Ogden, Non-linear Elastic Deformations,
   1984, sec. 4.4; Bonet and Wood, Nonlinear Continuum Mechanics for FEA, 2nd ed., sec. 6.4.1), past which an
@@ -20,7 +21,8 @@ of ``tests/sysid/simbag.py``, ``DEEP_PRESS_SLIDE`` of ``tests/sysid/test_gel_law
   instability resolved, not an under-resolved mesh, so no mesh choice makes the law converge (and imitating the
   engine's locking mesh is numerics, not physics).
 
-Asserted: the default law within 4 % pressed and sliding on both refinements; the Green-strain law below
+Asserted: the default law within 7 % (from above) of the refined mesh pressed and sliding and its slide / press
+ratio within 1.5 %; the Green-strain law below
 ``1/sqrt(3)`` on the default mesh and at least 0.1 lower again on the eight-layer one, above it on the two-layer
 one; the law's uniaxial stress peak at ``1/sqrt(3)`` to 1 % on a single element.
 """
@@ -78,7 +80,7 @@ def deep_press_slide(gel_element: str, resolution: tuple[int, int, int]) -> dict
 
 @pytest.fixture(scope="module")
 def default_law():
-    return {res: deep_press_slide("stable_neohookean", res) for res in ((8, 6, 5), (14, 11, 5), (8, 6, 9))}
+    return {res: deep_press_slide("stable_neohookean", res) for res in ((8, 6, 5), (14, 11, 9))}
 
 
 @pytest.fixture(scope="module")
@@ -86,24 +88,32 @@ def green_strain():
     return {res: deep_press_slide("green_strain", res) for res in ((10, 8, 3), (8, 6, 5), (8, 6, 9))}
 
 
-def test_the_default_gel_is_mesh_converged_on_the_deep_press_slide(default_law):
-    """Measured: K pressed 35.56 / 34.72 / 34.73 N/mm, at the slide's end 41.00 / 40.06 / 40.17 (``[8, 6, 5]`` /
-    ``[14, 11, 5]`` / ``[8, 6, 9]``), at 10.0 and 11.2 N on the default mesh."""
-    base = default_law[(8, 6, 5)]
+def test_the_default_gel_is_within_the_linear_tets_error_and_its_slide_trend_is_the_laws(default_law):
+    """Measured K pressed 35.56 / 33.75 N/mm, at the slide's end 41.00 / 38.78 (``[8, 6, 5]`` / ``[14, 11, 9]``):
+    the default mesh 5.4-5.7 % stiffer (the linear tets' locking at nu = 0.45, from above: see
+    test_known_answers_gel_compression.py), and the slide / press ratio 1.153 / 1.149."""
+    base, fine = default_law[(8, 6, 5)], default_law[(14, 11, 9)]
     assert base["force"][PRESSED] > 6.0  # the deep presses' load (6-7.5 N) or more
-    for res in ((14, 11, 5), (8, 6, 9)):
-        for step in (PRESSED, SLID):
-            assert base["stiffness"][step] == pytest.approx(default_law[res]["stiffness"][step], rel=0.04), (res, step)
+    for step in (PRESSED, SLID):
+        assert 1.0 < base["stiffness"][step] / fine["stiffness"][step] < 1.07, step
+    trend = [run["stiffness"][SLID] / run["stiffness"][PRESSED] for run in (base, fine)]
+    assert trend[0] == pytest.approx(trend[1], rel=0.015)
     # the law's own trend, which the engine's recording does not share (it softens by 27 % in the slide)
-    assert base["stiffness"][SLID] > 1.05 * base["stiffness"][PRESSED]
+    assert trend[0] > 1.1
 
 
 def test_the_green_strain_gel_collapses_past_its_limit_stretch_and_refinement_does_not_converge(green_strain):
     """Measured smallest stretch at the slide's end: 0.697 (``[10, 8, 3]``), 0.516 (``[8, 6, 5]``), 0.307
-    (``[8, 6, 9]``); pressed, before the slide, all above the limit (0.87 / 0.83 / 0.78) and K within 3.0 %."""
+    (``[8, 6, 9]``); pressed, before the slide, all above the limit (0.87 / 0.83 / 0.78) and K within 3.0 %. The
+    first slide's softening is the law's on every mesh (slide / press 0.719 / 0.743 / 0.741; the engine's recording
+    of stiction_s105 0.734); the collapse shows in the force only further on (the log: K at the second slide's end
+    16.2 / 9.6 / 13.5 N/mm, and Newton fails on ``[14, 11, 5]`` and ``[20, 15, 9]``)."""
     two_layer, default, eight_layer = (green_strain[res] for res in ((10, 8, 3), (8, 6, 5), (8, 6, 9)))
-    assert min(run["stretch"][PRESSED] for run in (two_layer, default, eight_layer)) > LIMIT_STRETCH
+    runs = (two_layer, default, eight_layer)
+    assert min(run["stretch"][PRESSED] for run in runs) > LIMIT_STRETCH
     assert default["stiffness"][PRESSED] == pytest.approx(eight_layer["stiffness"][PRESSED], rel=0.05)
+    for run in runs:
+        assert 0.68 < run["stiffness"][SLID] / run["stiffness"][PRESSED] < 0.78
     assert two_layer["stretch"][SLID] > LIMIT_STRETCH > default["stretch"][SLID]
     assert eight_layer["stretch"][SLID] < default["stretch"][SLID] - 0.1
 
