@@ -814,11 +814,11 @@ class ContactSet:
 
     def _device_friction(self, x_n: np.ndarray, dt: float, pots: tuple, rows: list) -> LaggedFriction | None:
         """:meth:`_pair_friction`'s rows on CUDA, built where the friction's kernels read them
-        (:func:`~sim_core.energies.friction.device_rows.friction_on_device`: one upload of the active pairs' vertices,
+        (:func:`~sim_core.energies.friction.rows_kernel.friction_on_device`: one upload of the active pairs' vertices,
         sides and distances, ``x^n`` read where the solver's terms hold it, nothing read back); None where no body
         pair has a positive Coulomb coefficient (rows of pairs whose coefficient is zero add nothing)."""
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
-        from sim_core.energies.friction.device_rows import friction_on_device
+        from sim_core.energies.friction.rows_kernel import friction_on_device
 
         table = self.coulomb.table()
         vertices = [pot.active_vertices(x_n) for pot, (active, _) in zip(pots, rows) if len(active)]

@@ -62,7 +62,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     from sim_core.energies.contact import batch_kernel as contact_batch
     from sim_core.energies.contact import distance_kernel as contact_distance
     from sim_core.energies.contact import setup_kernel as contact_setup
-    from sim_core.energies.friction import device_rows as friction_rows
+    from sim_core.energies.friction import rows_kernel as friction_rows
     from sim_core.energies.friction import kernel as friction
     from sim_core.energies.hinge_bending import fused_kernel as fused_hinge
     from sim_core.ti_kernels import block_projection, broad_phase, compaction, hash_candidates, sweep_candidates

@@ -117,15 +117,18 @@ EXPECTED_CAPABILITIES = {
 TAICHI_CAPABILITIES = {
     DeviceHessian: {"sim_core.energies.contact.kernel._Batched", "sim_core.energies.contact.kernel.TiEdgeEdgeContact",
                     "sim_core.energies.contact.kernel.TiVertexTriangleContact",
-                    "sim_core.energies.friction.kernel.TiLaggedFriction"},
+                    "sim_core.energies.friction.kernel.TiLaggedFriction",
+                    "sim_core.energies.friction.rows_kernel.DeviceLaggedFriction"},
     DeviceGradient: {"sim_core.energies.contact.kernel._Batched", "sim_core.energies.contact.kernel.TiEdgeEdgeContact",
                      "sim_core.energies.contact.kernel.TiVertexTriangleContact", "sim_core.fused_elastic.FusedElastic",
                      "sim_core.energies.friction.kernel.TiLaggedFriction",
+                     "sim_core.energies.friction.rows_kernel.DeviceLaggedFriction",
                      "sim_core.energies.gravity.kernel.TiGravityPotential"},
     # the fused parts give their kernels' element energies (one sum cell an element: launch.element_terms)
     CopyEnergies: {"sim_core.energies.contact.kernel.TiEdgeEdgeContact",
                    "sim_core.energies.contact.kernel.TiVertexTriangleContact",
                    "sim_core.energies.friction.kernel.TiLaggedFriction",
+                   "sim_core.energies.friction.rows_kernel.DeviceLaggedFriction",
                    "sim_core.energies.green_strain.fused_kernel.FusedGreenStrainSolid",
                    "sim_core.energies.hinge_bending.fused_kernel.FusedAnisotropicBending",
                    "sim_core.energies.kirchhoff_bending.fused_kernel.FusedKirchhoffBending",
@@ -137,7 +140,8 @@ TAICHI_CAPABILITIES = {
     DeviceCopyEnergies: {"sim_core.energies.contact.kernel._Batched",
                          "sim_core.energies.contact.kernel.TiEdgeEdgeContact",
                          "sim_core.energies.contact.kernel.TiVertexTriangleContact",
-                         "sim_core.energies.friction.kernel.TiLaggedFriction", "sim_core.fused_elastic.FusedElastic"},
+                         "sim_core.energies.friction.kernel.TiLaggedFriction",
+                         "sim_core.energies.friction.rows_kernel.DeviceLaggedFriction", "sim_core.fused_elastic.FusedElastic"},
 }
 """The classes of the Taichi modules (the energies' and candidates' ``*kernel`` modules and
 :mod:`sim_core.fused_elastic`) that declare the device capabilities (the lockstep batch's device-resident path)."""

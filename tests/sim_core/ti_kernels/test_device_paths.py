@@ -25,7 +25,7 @@ def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
 
     from sim_core.energies.contact import batch_kernel, setup_kernel, sides_kernel  # noqa: F401 (imported before
     # the arch queries are changed: a module first imported after would keep the changed query as its own)
-    from sim_core.energies.friction import device_rows
+    from sim_core.energies.friction import rows_kernel
     from sim_core.energies.friction import kernel as friction_kernel
     from sim_core.ti_backend import ti
 
@@ -54,7 +54,7 @@ def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
                                   (setup_kernel, {"2:_place_kernel"}),
                                   # the friction's rows built on the device (a single environment's Newton loop then
                                   # reads them back once and evaluates on the host arrays)
-                                  (device_rows, {"pairs", "vertex_body", "table"})):
+                                  (rows_kernel, {"pairs", "vertex_body", "table"})):
                 kept = module._ARRAYS.device()
                 assert names <= set(kept), module.__name__
                 assert all(isinstance(kept[name][1], ti.lang._ndarray.ScalarNdarray) for name in names)

@@ -1,4 +1,4 @@
-"""The lagged friction rows built on the device (``sim_core.energies.friction.device_rows``): the rows equal the host
+"""The lagged friction rows built on the device (``sim_core.energies.friction.rows_kernel``): the rows equal the host
 set-up's (frames and tangent bases bit for bit, normal forces and Coulomb coefficients), the friction's energy,
 gradient, Hessian blocks and energies by copy from them equal the NumPy reference, the contact set builds them on
 CUDA's path (emulated on the CPU arch) with nothing read back until a host array is asked for, and a Forming batch
@@ -27,7 +27,7 @@ def _rows_and_reference(seed: int, count: int = 300, split: int = 120):
     """A friction built by ``friction_on_device`` from random pairs and the reference ``LaggedFriction`` of the same
     pairs from the host set-up (``friction_frames``, host normal forces and coefficients), and ``x^n``."""
     from sim_core.energies.contact.setup_kernel import friction_frames
-    from sim_core.energies.friction.device_rows import friction_on_device
+    from sim_core.energies.friction.rows_kernel import friction_on_device
     from sim_core.energies.friction.reference import LaggedFriction
 
     x, vertices = _batch(seed, count)
@@ -119,7 +119,7 @@ def test_device_rows_evaluate_as_the_reference(ti_cpu, scale):
 def test_contact_set_builds_the_friction_rows_on_the_device_path(ti_cpu, monkeypatch):
     """On CUDA's path the contact set's friction of a pressed Forming state is a DeviceLaggedFriction whose rows, row
     sources, normal forces and coefficients equal the host path's bit for bit."""
-    from sim_core.energies.friction.device_rows import DeviceLaggedFriction
+    from sim_core.energies.friction.rows_kernel import DeviceLaggedFriction
 
     results = []
     for emulated in (False, True):
@@ -149,7 +149,7 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
     import copy
 
     from sim_core.control import Control
-    from sim_core.energies.friction import device_rows
+    from sim_core.energies.friction import rows_kernel as device_rows
     from sim_core.simulation import Simulation
     from sim_core.solver_config import SolverConfig
 
