@@ -13,6 +13,7 @@ import yaml
 from sim_core.errors import CalibrationError
 from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
+from sim_core.solver_config import SolverConfig
 from sysid.calibration import calibrate
 from sysid.cli import sysid_main
 from sysid.evidence import load_evidence
@@ -23,6 +24,9 @@ from thinshell_ros.paths import config_dir
 
 FOLDING = config_dir() / "scenes" / "folding.yaml"
 DOME_START = [-0.0144833, 0.0, 0.0212333, 1.0, 0.0, 0.0, 0.0]
+
+RECORDER_STOP = SolverConfig().tol_velocity * 0.005
+"""m: how far a recorded step (the simulator's default Newton tolerance, dt 5 ms) may stop from its minimiser."""
 
 
 def _folding_bag(tmp_path, *extra):
@@ -80,7 +84,9 @@ def test_task_replay_reproduces_the_recording_and_rejects_tactile_channels(tmp_p
     assert model.data("sheet_points").shape == (6, 64, 3) and model.step_count == 10
     trace = model.simulate({})
     rms = model.channel_rms(model.predict(trace))["sheet_points"]["rms"]
-    assert rms < 1e-8                       # the same scene and commands give the recorded points
+    # the same scene and commands give the recorded points, to the recorder's stopping error: its steps stop within
+    # tol_velocity * dt of their minimisers, the replay's are solved to sysid.observation.REPLAY_TOL_VELOCITY
+    assert rms < RECORDER_STOP
     with pytest.raises(CalibrationError, match="no tactile sensor; channels wrench cannot be fitted"):
         ObservationModel(load_evidence(bag), dt=0.005, channels=["sheet_points", "wrench"])
     with pytest.raises(CalibrationError, match="no tactile sensor, so there is no sensor calibration"):
@@ -103,7 +109,7 @@ def test_gripper_cmd_and_every_effector_are_replayed_and_a_missing_effector_is_n
     assert abs(last.gripper_target["grip"] - 0.009) < 1e-12
     assert abs(last.effector_pose_target["grip"][2] - 0.018) < 1e-12
     trace = model.simulate({})
-    assert np.sqrt(np.mean((model.predict(trace)["sheet_points"] - model.data("sheet_points")) ** 2)) < 1e-8
+    assert np.sqrt(np.mean((model.predict(trace)["sheet_points"] - model.data("sheet_points")) ** 2)) < RECORDER_STOP
     doc = v2_scene()
     doc["effectors"]["spare"] = dict(doc["effectors"]["grip"], initial_pose=[0.05, 0.0, 0.02, 0.0, 0.0, 0.0, 1.0])
     other = tmp_path / "other.yaml"
