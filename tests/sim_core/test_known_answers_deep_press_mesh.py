@@ -1,0 +1,138 @@
+"""The gel's deep press-slide under mesh refinement, per gel law: converged (Stable Neo-Hookean) or not (Green strain).
+
+Issue 49 item 2: on the reference engine's two deep press-slides (stiction_s105, gel_creep_s108; 6-7.5 N) the
+calibration asks for a marker depth scale of ~1.5 under the default Stable Neo-Hookean gel and 0.37-0.44 under the
+Green-strain gel (Saint Venant-Kirchhoff, StVK). Forward replays of this simulator's deep press-slide (the card scene
+of ``tests/sysid/simbag.py``, ``DEEP_PRESS_SLIDE`` of ``tests/sysid/test_gel_law.py``: 1.25 mm down, 7.5-10 N, then
+2 mm of slip at 0.8 friction) on refined gel meshes (benchmarks log, session 55, s55-49depth) separate the two:
+
+- The default law on the default mesh ``[8, 6, 5]``: the normal stiffness ``K = F_z / mean marker sink`` (N/m)
+  pressed and at the slide's end is 5.4-5.7 % above the mesh refined 1.8x in every direction ``[14, 11, 9]``
+  (2.4 % above ``[14, 11, 5]`` and ``[8, 6, 9]``: the log), the linear tets' known locking at nu = 0.45, and the
+  slide / press ratio is the same on both meshes to 0.4 %. The depth scale it leaves is the law's: its K rises by
+  15 % once the slide begins, the engine's falls by 27 %.
+- The Green-strain law is not converged by any mesh in the slide: StVK's stress in compression has its maximum at
+  the stretch ``1/sqrt(3)`` (uniaxially ``P = (lam + 2 mu) l (l^2 - 1) / 2``; Ogden, Non-linear Elastic Deformations,
+  1984, sec. 4.4; Bonet and Wood, Nonlinear Continuum Mechanics for FEA, 2nd ed., sec. 6.4.1), past which an
+  element collapses at finite energy. The smallest principal stretch under the sliding pad goes below that limit on
+  every four-layer or finer mesh and falls further with each refinement (0.52, 0.31, 0.15 on ``[8, 6, 5]``,
+  ``[8, 6, 9]``, ``[14, 11, 9]``), while the engine's two-layer mesh ``[10, 8, 3]`` locks and stays at 0.70 (on the
+  stiction_s105 replay a few of its edge tets collapse too, and move its markers far less: the log). The markers
+  then sink into collapsed elements: the Green-strain replay's 0.37-0.44 depth scale is StVK's material
+  instability resolved, not an under-resolved mesh, so no mesh choice makes the law converge (and imitating the
+  engine's locking mesh is numerics, not physics).
+
+Asserted: the default law within 7 % (from above) of the refined mesh pressed and sliding and its slide / press
+ratio within 1.5 %; the Green-strain law below
+``1/sqrt(3)`` on the default mesh and at least 0.1 lower again on the eight-layer one, above it on the two-layer
+one; the law's uniaxial stress peak at ``1/sqrt(3)`` to 1 % on a single element.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.control import Control
+from sim_core.energies.green_strain import GreenStrainSolid
+from sim_core.scenes import load_scene
+from sim_core.simulation import Simulation
+from tests.sysid.simbag import TRUE_PARAMS, scene_with, targets_from_segments
+from tests.sysid.test_gel_law import DEEP_PRESS_SLIDE
+
+PRESSED, SLID = 3, 11
+"""Steps of ``DEEP_PRESS_SLIDE`` at the end of the press (1.25 mm) and of the first slide (2 mm of slip)."""
+
+LIMIT_STRETCH = 1.0 / np.sqrt(3.0)
+"""StVK's stretch of largest compressive stress (uniaxial: ``d/dl [l (l^2 - 1)] = 0``)."""
+
+
+def deep_press_slide(gel_element: str, resolution: tuple[int, int, int]) -> dict[str, np.ndarray]:
+    """The card scene's deep press-slide replayed to the end of its first slide with the given gel law and mesh.
+
+    Returns:
+        per step 1..SLID: ``stiffness`` ``F_z / mean marker sink`` (N/m; sink along the sensor's -z, the markers'
+        mean), ``force`` ``|F_z|`` (N), ``stretch`` the smallest principal stretch of the gel's tets (``F = D_s
+        D_m^-1``'s smallest singular value).
+    """
+    scene = scene_with(TRUE_PARAMS)
+    scene = {**scene, "simulation": {**(scene.get("simulation") or {}), "gel_element": gel_element,
+                                     "gel_resolution": list(resolution)}}
+    sim = Simulation(load_scene(scene), dt=scene["dt"])
+    for name, value in TRUE_PARAMS.items():
+        sim.set_parameter(name, value)
+    tets = sim.model.bodies[sim.model.sensors["tactile"].gel_body].tets
+    rest = sim.model.x_rest
+    inverse_rest = np.linalg.inv(np.stack([rest[tets[:, i]] - rest[tets[:, 0]] for i in (1, 2, 3)], axis=-1))
+    markers0 = sim.observe().tactile["tactile"].markers_xyz[:, 2].copy()
+    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), DEEP_PRESS_SLIDE)[:SLID]
+    out = {"stiffness": [], "force": [], "stretch": []}
+    for target in targets:
+        sim.step(Control({"ee": target}))
+        reading = sim.observe().tactile["tactile"]
+        x = sim.state.x
+        deformed = np.stack([x[tets[:, i]] - x[tets[:, 0]] for i in (1, 2, 3)], axis=-1)
+        sink = float(np.mean(markers0 - reading.markers_xyz[:, 2]))
+        out["force"].append(abs(float(reading.wrench[2])))
+        out["stiffness"].append(out["force"][-1] / sink if sink > 0.0 else 0.0)
+        out["stretch"].append(float(np.linalg.svd(deformed @ inverse_rest, compute_uv=False).min()))
+    return {key: np.array([np.nan] + value) for key, value in out.items()}  # index = step
+
+
+@pytest.fixture(scope="module")
+def default_law():
+    return {res: deep_press_slide("stable_neohookean", res) for res in ((8, 6, 5), (14, 11, 9))}
+
+
+@pytest.fixture(scope="module")
+def green_strain():
+    return {res: deep_press_slide("green_strain", res) for res in ((10, 8, 3), (8, 6, 5), (8, 6, 9))}
+
+
+def test_the_default_gel_is_within_the_linear_tets_error_and_its_slide_trend_is_the_laws(default_law):
+    """Measured K pressed 35.56 / 33.75 N/mm, at the slide's end 41.00 / 38.78 (``[8, 6, 5]`` / ``[14, 11, 9]``):
+    the default mesh 5.4-5.7 % stiffer (the linear tets' locking at nu = 0.45, from above: see
+    test_known_answers_gel_compression.py), and the slide / press ratio 1.153 / 1.149."""
+    base, fine = default_law[(8, 6, 5)], default_law[(14, 11, 9)]
+    assert base["force"][PRESSED] > 6.0  # the deep presses' load (6-7.5 N) or more
+    for step in (PRESSED, SLID):
+        assert 1.0 < base["stiffness"][step] / fine["stiffness"][step] < 1.07, step
+    trend = [run["stiffness"][SLID] / run["stiffness"][PRESSED] for run in (base, fine)]
+    assert trend[0] == pytest.approx(trend[1], rel=0.015)
+    # the law's own trend, which the engine's recording does not share (it softens by 27 % in the slide)
+    assert trend[0] > 1.1
+
+
+def test_the_green_strain_gel_collapses_past_its_limit_stretch_and_refinement_does_not_converge(green_strain):
+    """Measured smallest stretch at the slide's end: 0.697 (``[10, 8, 3]``), 0.516 (``[8, 6, 5]``), 0.307
+    (``[8, 6, 9]``); pressed, before the slide, all above the limit (0.87 / 0.83 / 0.78) and K within 3.0 %. The
+    first slide's softening is the law's on every mesh (slide / press 0.719 / 0.743 / 0.741; the engine's recording
+    of stiction_s105 0.734); the collapse shows in the force only further on (the log: K at the second slide's end
+    16.2 / 9.6 / 13.5 N/mm, and Newton fails on ``[14, 11, 5]`` and ``[20, 15, 9]``)."""
+    two_layer, default, eight_layer = (green_strain[res] for res in ((10, 8, 3), (8, 6, 5), (8, 6, 9)))
+    runs = (two_layer, default, eight_layer)
+    assert min(run["stretch"][PRESSED] for run in runs) > LIMIT_STRETCH
+    assert default["stiffness"][PRESSED] == pytest.approx(eight_layer["stiffness"][PRESSED], rel=0.05)
+    for run in runs:
+        assert 0.68 < run["stiffness"][SLID] / run["stiffness"][PRESSED] < 0.78
+    assert two_layer["stretch"][SLID] > LIMIT_STRETCH > default["stretch"][SLID]
+    assert eight_layer["stretch"][SLID] < default["stretch"][SLID] - 0.1
+
+
+def test_the_green_strain_law_has_its_compressive_stress_peak_at_the_limit_stretch():
+    """One tet compressed along z with its base held (uniaxial strain): the force on the apex, ``-dW/dz``, is
+    ``V (lam + 2 mu) l (l^2 - 1) / 2 / h`` and largest in magnitude at ``l = 1/sqrt(3)``."""
+    h = 1.0e-3
+    rest = np.array([[0.0, 0.0, 0.0], [h, 0.0, 0.0], [0.0, h, 0.0], [0.0, 0.0, h]])
+    solid = GreenStrainSolid(np.array([[0, 1, 2, 3]]), rest, 3.0e5, 0.45)
+    stretches = np.linspace(0.3, 0.95, 1301)
+    force = []
+    for stretch in stretches:
+        x = rest.copy()
+        x[3, 2] = stretch * h
+        force.append(solid.gradient(x)[3, 2])
+    force = np.array(force)
+    assert stretches[np.argmin(force)] == pytest.approx(LIMIT_STRETCH, rel=0.01)
+    lam_2mu = 3.0e5 * (1 - 0.45) / ((1 + 0.45) * (1 - 2 * 0.45))
+    expected = h**3 / 6 * lam_2mu * stretches * (stretches**2 - 1) / 2 / h
+    assert force == pytest.approx(expected, rel=1e-6)
