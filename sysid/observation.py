@@ -89,7 +89,7 @@ minimiser by up to ``tol_velocity * dt`` (1 um at the fit's 10 ms step with 1e-4
 earlier or later jumps with the parameters. Where the card slides on the table under the gel, its rigid motion is held
 by little but inertia and a saturated friction, and such a jump grows step by step: at 1e-4, nominal_s101 replayed
 (kinematic, first 2 s) at gel moduli 1e-5 apart moved the markers by 0.0085 whitened RMS and the cost by -42 where its
-slope gives +3 (session 55, s55-49rest, which then solved every step to 1e-7 m/s). With the update applied the
+slope gives +3 (docs/benchmarks_log.md, session 55, s55-49rest). With the update applied the
 error is second order in it: the same replay, against one solved to 1e-8 m/s the old way, at 1e-4 / 1e-5 / 1e-6 /
 1e-7 m/s differs by 0.019 / 1e-6 / 0 / 0 (markers), 0.013 / 5e-6 / 5e-6 / 5e-6 (wrench; 5e-6 is the reference's own
 error), 0.138 / 3e-6 / 0 / 0 (sheet points) whitened RMS, and the pair 1e-5 apart by 2.1e-5 / 1.1e-4 / 2.5e-5 at each
