@@ -102,7 +102,7 @@ class SolverConfig:
             minimiser applied, 6.6e-9 m not, 0 with the ordinary update). Not applied: a ``"stalled"`` stop (a
             residual that no longer drops is round-off, its update noise) and a failed line search's acceptances
             (the update did not lower the energy). Off by default (the simulator's own results as before);
-            sysid's replays turn it on (:data:`sysid.observation.REPLAY_APPLY_LAST_UPDATE`). A lockstep batch
+            sysid's replays keep it off (:data:`sysid.observation.REPLAY_APPLY_LAST_UPDATE` says why). A lockstep batch
             (``lockstep``) ignores it: its copies stop as by default.
         dt_halvings_on_failure: a step whose Newton solve fails (:class:`SimulationDivergedError`)
             is redone from its start as 2, 4, ... substeps of dt/2, dt/4, ..., at most this many

@@ -80,30 +80,24 @@ REPLAY_DT_HALVINGS = 4
 """Substep retries of a replay step whose Newton solve fails (``SolverConfig.dt_halvings_on_failure``):
 dt/2, dt/4, ... down to dt/16 before the replay gives up; ``Simulation.step_totals`` counts them."""
 
-REPLAY_TOL_VELOCITY = 1e-5
-"""Newton tolerance of every replay step (``SolverConfig.tol_velocity``, m/s; the simulator's default is 1e-4), each
-step ending with its last Newton update applied (:data:`REPLAY_APPLY_LAST_UPDATE`).
+REPLAY_TOL_VELOCITY = 1e-7
+"""Newton tolerance of every replay step (``SolverConfig.tol_velocity``, m/s; the simulator's default is 1e-4).
 
-A step stopped the simulator's way stops on a Newton update it does not apply, so its result is off the step's
+A step stopped at the simulator's default stops on a Newton update it does not apply, so its result is off the step's
 minimiser by up to ``tol_velocity * dt`` (1 um at the fit's 10 ms step with 1e-4), and whether a step ends one iteration
 earlier or later jumps with the parameters. Where the card slides on the table under the gel, its rigid motion is held
 by little but inertia and a saturated friction, and such a jump grows step by step: at 1e-4, nominal_s101 replayed
 (kinematic, first 2 s) at gel moduli 1e-5 apart moved the markers by 0.0085 whitened RMS and the cost by -42 where its
-slope gives +3 (docs/benchmarks_log.md, session 55, s55-49rest). With the update applied the
-error is second order in it: the same replay, against one solved to 1e-8 m/s the old way, at 1e-4 / 1e-5 / 1e-6 /
-1e-7 m/s differs by 0.019 / 1e-6 / 0 / 0 (markers), 0.013 / 5e-6 / 5e-6 / 5e-6 (wrench; 5e-6 is the reference's own
-error), 0.138 / 3e-6 / 0 / 0 (sheet points) whitened RMS, and the pair 1e-5 apart by 2.1e-5 / 1.1e-4 / 2.5e-5 at each
-tolerance (linear, smooth at all four). 1e-5 is the loosest whose difference from the converged replay is below the
-change of a 1e-5 relative step in a parameter (a finite difference's resolution), with no relaxed stop; at 1e-7 a step
-stalls in round-off. 1e-4 is smooth but 0.14 sheet-point noise levels off: at 1 um the lagged friction's stick
-stiffness (which varies on the scale ``eps_v * dt``, 24 um here) is not yet quadratic (docs/benchmarks_log.md,
-session 55, s55-49stop)."""
+slope gives +3. Solved to 1e-7 m/s the same pair differs by 2e-5 / 1.1e-4 (markers / wrench, linear in the step), and
+the cost is converged to 1e-6 of itself (docs/benchmarks_log.md, session 55, s55-49rest)."""
 
-REPLAY_APPLY_LAST_UPDATE = True
-"""Every replay step ends with its last Newton update applied (``SolverConfig.apply_last_update``): the stop's error
-second order in that update instead of the update itself, so :data:`REPLAY_TOL_VELOCITY` can be 100x looser than
-the 1e-7 m/s an unapplied stop needed for the same replay (docs/benchmarks_log.md, session 55, s55-49stop)."""
-
+REPLAY_APPLY_LAST_UPDATE = False
+"""Whether a replay step ends with its last Newton update applied (``SolverConfig.apply_last_update``). Applied, the
+same smoothness holds at 1e-5 m/s at ~15 % less a replay (docs/benchmarks_log.md, session 55, s55-49stop), but the
+step's kept Newton matrix is then that of the iterate before the result, and the tangents built on it are off where
+the lagged friction's stick stiffness changes on the scale of that last update: the contact.eps_v column of
+tests/sysid/test_calibration.py (eps_v x 0.55) is 1.05 % from its central difference (limit 0.1 %). Off until the
+tangents take the matrix at the result."""
 
 class ObservationWarning(UserWarning):
     """A channel cannot be fitted (absent from the recording, or not predictable)."""

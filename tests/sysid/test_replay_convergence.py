@@ -1,14 +1,12 @@
-"""A replay is a smooth function of its parameters: every step solved to :data:`sysid.observation.REPLAY_TOL_VELOCITY`
-with its last Newton update applied (:data:`sysid.observation.REPLAY_APPLY_LAST_UPDATE`).
+"""A replay is a smooth function of its parameters: every step solved to :data:`sysid.observation.REPLAY_TOL_VELOCITY`.
 
 At the simulator's default Newton tolerance (1e-4 m/s) a step stops up to ``tol_velocity * dt`` (1 um at 10 ms) off
 its minimiser, and whether it stops one iteration earlier or later jumps with the parameters; where the card slides
 on the table under the gel those jumps grow from step to step. nominal_s101 (the reference engine's press-slide),
 replayed kinematically over its first 2 s at gel moduli 1e-5 apart (relative), then moved its markers by 0.0085 and
 its wrench by 0.0099 whitened RMS, and its cost by -42 where the slope gives +3 (docs/benchmarks_log.md, session 55,
-s55-49rest). Solved to 1e-5 m/s with the update applied the same pair differs by 2.1e-5 / 1.1e-4 (linear in the
-step), and a tenth of the tolerance changes the replay by less than that (s55-49stop: 1e-6 / 5e-6 / 3e-6 from a replay
-solved to 1e-8 m/s the old way).
+s55-49rest). Solved to 1e-7 m/s the same pair differs by 2e-5 / 1.1e-4 (linear in the step), and 1e-8 changes the
+replay by less than that.
 """
 
 from __future__ import annotations
@@ -19,7 +17,7 @@ import numpy as np
 import pytest
 
 from sysid.evidence import load_evidence
-from sysid.observation import REPLAY_APPLY_LAST_UPDATE, REPLAY_TOL_VELOCITY, ObservationModel
+from sysid.observation import REPLAY_TOL_VELOCITY, ObservationModel
 from tests.sysid.conftest import reference_bag
 
 SCENE = {"sheet.bending_stiffness": 0.007418, "gel.youngs_modulus": 3.0e5, "friction.gel_sheet": 0.8}
@@ -35,7 +33,7 @@ scene's value jumped at 1e-4 m/s)."""
 
 BOUND = 1e-3
 """Largest whitened RMS difference per channel allowed between the replays (noise units): 8-10x below the jump at
-1e-4 m/s, 9x above the smooth change measured at 1e-5 and 1e-7 m/s (wrench 1.1e-4 per 1e-5 of the modulus)."""
+1e-4 m/s, 9x above the smooth change measured at 1e-7 m/s (wrench 1.1e-4 per 1e-5 of the modulus)."""
 
 
 def _model(t_max: float, arch: str) -> ObservationModel:
@@ -73,9 +71,7 @@ def _rms(model: ObservationModel, a: np.ndarray, b: np.ndarray) -> dict[str, flo
 
 def test_replays_are_solved_to_the_replay_tolerance():
     model = _model(0.05, "numpy")
-    config = model.simulation().solver.config
-    assert config.tol_velocity == REPLAY_TOL_VELOCITY == 1e-5
-    assert config.apply_last_update is REPLAY_APPLY_LAST_UPDATE is True
+    assert model.simulation().solver.config.tol_velocity == REPLAY_TOL_VELOCITY == 1e-7
 
 
 def test_replays_a_hair_apart_in_the_gel_modulus_differ_by_a_hair(replays):

@@ -80,7 +80,16 @@ def test_compare_task_measures_the_reward_the_recording_scene_predicts(tmp_path,
                          "--dt", "0.005", "--arch", "numpy", "--out", str(out)]) == 0
     reward = json.loads((out / "compare.json").read_text())["reward"]
     assert reward["task"] == "Forming" and reward["unit"] == "m^2" and reward["recording"] < 0
-    assert reward["predicted"]["nominal"] == pytest.approx(reward["recording"], rel=1e-6)   # the bag's own scene
+    # the bag's own scene predicts the recorded reward to the recorder's stopping error: each recorded step stops within
+    # tol_velocity * dt of its minimiser (the replay's steps are solved tighter, sysid.observation.REPLAY_TOL_VELOCITY),
+    # so a vertex is at most delta = steps * tol_velocity * dt off, and R = -sum |e_i|^2 over n vertices moves by at most
+    # 2 sqrt(n |R|) delta + n delta^2 (Cauchy-Schwarz)
+    from sim_core.solver_config import SolverConfig
+
+    nx, ny = task.scene["sheets"]["sheet"]["resolution"]
+    n, delta = (nx + 1) * (ny + 1), 5 * SolverConfig().tol_velocity * 0.005
+    bound = 2.0 * np.sqrt(n * abs(reward["recording"])) * delta + n * delta ** 2
+    assert abs(reward["predicted"]["nominal"] - reward["recording"]) < bound
     assert abs(reward["predicted"]["stiff"] - reward["recording"]) > 1e-3 * abs(reward["recording"])
     assert "reward achieved on the recording" in capsys.readouterr().out
     assert compare_main([str(bag), "--scene", str(other), "--task", "folding_l", "--horizon", "5", "--dt", "0.005",
