@@ -16,6 +16,12 @@ from tests.sim_core.ti_kernels.test_contact_setup import _batch, _forming_contac
 from tests.support.emulated_cuda import emulate_cuda
 
 
+EMULATED_ONLY = ("runs CUDA's friction path emulated on the CPU arch beside the host path, which only the CPU arch "
+                 "runs (the default, and CI); under THINSHELL_TEST_ARCH=cuda the device rows run for real in this "
+                 "module's other tests")
+"""Why the emulation tests are left out on a GPU run."""
+
+
 def _device(a: np.ndarray):
     from sim_core.ti_backend import ti
     from sim_core.ti_kernels.transfer import upload
@@ -115,7 +121,7 @@ def test_device_rows_evaluate_as_the_reference(ti_cpu, scale):
     np.testing.assert_allclose(g2.to_numpy(), ref.gradient(x), rtol=0, atol=2e-12 * scale_g)
 
 
-@pytest.mark.skipif(TEST_ARCH != "cpu", reason="emulates the CUDA paths on the CPU arch")
+@pytest.mark.skipif(TEST_ARCH != "cpu", reason=EMULATED_ONLY)
 def test_contact_set_builds_the_friction_rows_on_the_device_path(ti_cpu, monkeypatch):
     """On CUDA's path the contact set's friction of a pressed Forming state is a DeviceLaggedFriction whose rows, row
     sources, normal forces and coefficients equal the host path's bit for bit."""
@@ -140,7 +146,7 @@ def test_contact_set_builds_the_friction_rows_on_the_device_path(ti_cpu, monkeyp
         np.testing.assert_array_equal(a.pair_index, b.pair_index)
 
 
-@pytest.mark.skipif(TEST_ARCH != "cpu", reason="emulates the CUDA paths on the CPU arch")
+@pytest.mark.skipif(TEST_ARCH != "cpu", reason=EMULATED_ONLY)
 def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkeypatch):
     """Three Forming copies stepped in lockstep on CUDA's paths (emulated on the CPU arch; the envelope solver, each
     step's friction from device rows, none of its host arrays read): copies 0 and 2 end every step where their

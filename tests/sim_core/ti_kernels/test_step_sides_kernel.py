@@ -24,6 +24,12 @@ _KEPT_ARRAYS = ("sim_core.ti_kernels.compaction", "sim_core.energies.contact.sid
                 "sim_core.energies.friction.kernel")
 
 
+EMULATED_ONLY = ("compares CUDA's side launch, emulated on the CPU arch, with the host's sides, which only the CPU arch "
+                 "computes (the default, and CI); under THINSHELL_TEST_ARCH=cuda the contact set takes the launch's "
+                 "sides for real in every contact test of this folder (test_contact_setup, test_contact_batch)")
+"""Why the emulation tests are left out on a GPU run."""
+
+
 def _emulate_cuda(monkeypatch) -> None:
     """The arch query of the launches' callers answering "cuda" on the CPU arch (the loops stay serial), with the
     launches' per-thread arrays of this test's own (their device copies made here go with it: a later test on the
@@ -58,7 +64,7 @@ def _host_sides(x, vt, ee, pairs, keys, memories, min_sine):
     return np.concatenate([vt_sides, ee_sides]), geo.ee_keep, geo
 
 
-@pytest.mark.skipif(TEST_ARCH != "cpu", reason="emulates the CUDA launch path on the CPU arch")
+@pytest.mark.skipif(TEST_ARCH != "cpu", reason=EMULATED_ONLY)
 @pytest.mark.parametrize("emulated", [False, True])
 def test_the_codes_and_placed_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, monkeypatch, emulated):
     """Random pairs of every region, a memory holding pairs above (its side kept, against the geometric one for
@@ -148,7 +154,7 @@ def _forming_run(device_sides: bool, monkeypatch) -> list:
     return out
 
 
-@pytest.mark.skipif(TEST_ARCH != "cpu", reason="emulates the CUDA launch path on the CPU arch")
+@pytest.mark.skipif(TEST_ARCH != "cpu", reason=EMULATED_ONLY)
 @pytest.mark.parametrize("emulated", [False, True])
 def test_forming_contact_set_with_the_launchs_sides_equals_the_hosts(ti_cpu, monkeypatch, emulated):
     """Forming's contact set (pressed, two steps, a new search at a trial point, remembered sides from the first step)
