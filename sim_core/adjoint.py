@@ -491,7 +491,7 @@ class StepLinearization:
         friction) whose blocks were found over the same vertex array at two earlier steps, none of them touching
         this support, is not evaluated at all (bit for bit the same product: its blocks added nothing). On a
         press-and-slide the effector's support touches the gel's tets only, so the card's membrane and Kirchhoff
-        bending Hessians (the most costly NumPy Hessians of a step) are no longer built for a product of zeros."""
+        bending Hessians (the most costly NumPy Hessians of a step) are not built for a product of zeros."""
         if self._H is not None:
             out = self.hessian_product(dx)
             out[self.fixed] = 0.0

@@ -427,7 +427,7 @@ def _secant_step_with_tangents(model: ObservationModel, options: FitOptions, cal
     (:func:`sysid.calibration_secant.secant_calibration` ``last``), kept in ``made`` for :func:`sysid.fit.fit`.
 
     The fit starts at the start's materials and the stick speed of the stage's best replay, which is that step
-    where the step improved on the probe; its first joint replay was then the same cold replay again, made for its
+    where the step improved on the probe; its first joint replay would be the same cold replay again, made for its
     tangents (10-14 % of a default fit of nominal_s101). Made from t = 0 (the stage resumes its plain replays from
     before the gel's first contact: the tangents of the materials are not zero before it). None (the stage's own
     replay) where the fit would not take it: the stick speed not fitted, warm replays, no sensitivity Jacobian.

@@ -28,7 +28,7 @@ replay's sensor offset (not a simulator parameter). The friction mollifier width
 tangent (:meth:`sim_core.energies.friction.reference.LaggedFriction.eps_v_gradient`), the tack's shear layer
 (:data:`sysid.tack.SHEAR_STIFFNESS_SETTING`) its own
 (:meth:`sim_core.candidates.adhesion.LaggedAdhesion.parameter_gradient`, with the bonds' lagged normals in the state
-tangents; session 55: a 10 % forward difference before)."""
+tangents)."""
 
 DIFFERENCE_STEPS = {"sensor.normal_offset": 0.1}
 """Forward-difference step (search coordinates) of each difference parameter, when larger than the
@@ -312,9 +312,9 @@ class TangentReplay:
 
     ``thinshell sysid`` makes the calibration's secant step (:func:`sysid.calibration_secant.secant_calibration`
     ``last``) this way: the fit starts at the stick speed that step replayed, at the start's materials, so its first
-    joint replay was that replay again, for its tangents (10-14 % of a default fit of nominal_s101; docs/benchmarks_log.md,
+    joint replay would be that replay again, for its tangents (10-14 % of a default fit of nominal_s101; docs/benchmarks_log.md,
     session 54, s54-49time). A replay is a function of its parameters, its drive and the model's recording only when
-    it is cold (``model.warm_start`` None, the default since session 54), as both are.
+    it is cold (``model.warm_start`` None, the default), as both are.
 
     Attributes:
         values: every parameter the replay set or read, SI: the values it was given, and the model's nominal then of
