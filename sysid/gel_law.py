@@ -13,10 +13,10 @@ law from a start x1.3 / x2 its modulus (delta-BIC 21 / 64, docs/benchmarks_log.m
 modulus, friction and stick speed (:data:`PROFILED`) are therefore moved towards that law's own values first, by
 :data:`STEPS` Levenberg-Marquardt steps (:func:`law_steps`, :func:`damped_step`, at most :data:`STEP_RADIUS` in each
 search coordinate), each on the tangents of the replay at its start (:meth:`sysid.jacobians.SensitivityJacobian.joint`),
-the last step's end confirmed by a plain replay; the law's cost is the best replay's. Two steps cost two replays with tangents and one
-without a law and reach the costs of each law's fit to convergence on nominal_s101 within 1 % (a fit to convergence:
-up to five replays with tangents a law, 185-260 CPU s there) (docs/benchmarks_log.md, session 55 "49law"; one step from the scene's stick speed, 3.5x the
-recording's, left them 5-12 % above). Every replay goes
+the last step's end confirmed by a plain replay; the law's cost is the best replay's. Two steps cost two replays
+with tangents and one without a law and reach the costs of each law's fit to convergence on nominal_s101 within 1 %
+(a fit to convergence: up to five replays with tangents a law, 185-260 CPU s there; docs/benchmarks_log.md, session
+55 "49law"; one step from the scene's stick speed, 3.5x the recording's, left them 5-12 % above). Every replay goes
 through the effector's drive fitted from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor
 gains (force gain, marker scales, camera) refitted in closed form within their prior
 (:class:`sysid.gain_profile.GainProfile`), on the tactile channels only. The laws have the same number of
