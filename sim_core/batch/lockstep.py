@@ -163,7 +163,16 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             ``hessian_of_vertices``).
         last_stacked_info: the stacked :class:`StepInfo` of the last step (iterations of the slowest
             copy, factorisations, times), or None.
+        copies_factorized: with a device solver, the copies whose Newton matrix it factorised, summed over its
+            factorisations (``B`` a factorisation where it factorises every copy).
     """
+
+    skip_closed_copies: bool = True
+    """With a device solver that takes a device mask (the envelope, ``device_copies``), a Newton iteration's first
+    factorisation and solve are those of the copies with an update to find only: the copies that have converged (and
+    those with a zero gradient) are neither gathered into the envelope nor factorised nor substituted, at no extra
+    transfer (:meth:`_copies_to_factorize`). Their update is 0 either way (their right-hand side is 0); the results are
+    the same bit for bit. False: every copy's matrix each iteration."""
 
     def __init__(self, scene: StackedScene, config: SolverConfig | None = None) -> None:
         config = config or SolverConfig()
@@ -212,6 +221,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         self._trial_energy: tuple | None = None  # (x, contact terms, J): the last trial point's measured energy
         self._copy_sums = None  # the line search's per-copy sums on the device (CopySums, made at the first use)
         self.last_stacked_info: StepInfo | None = None
+        self.copies_factorized = 0  # copies whose matrix the device solver factorised, summed over its calls
         self._finish_iterate: Iterate | None = None  # the step's result while _finish_step runs
 
     def _new_elastic_terms(self):
@@ -603,7 +613,9 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             # (a synchronous upload waits for every kernel queued before it), so that the host waits once, for the
             # factorisation and the CG together
             vectors.blend(rhs, g, todo, ~todo, scale=-1.0)
-            pcg.factorize(upper, blocks, diagonal, None if k == 0 else todo)  # a retry: its copies' band blocks only
+            copies = self._copies_to_factorize(k, todo)
+            pcg.factorize(upper, blocks, diagonal, copies)
+            self.copies_factorized += self.scene.copies if copies is None else int(todo.sum())
             dk = vectors.new()
             pcg.solve_on_device(rhs, dk)
             info.time_linear_solve += time.perf_counter() - tl
@@ -631,6 +643,18 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                 break
         self._direction_scalars = (d, slope, norm)
         return d, H, projection, pcg
+
+    def _copies_to_factorize(self, k: int, todo: np.ndarray):
+        """The ``copies`` of the device solver's ``k``-th factorisation of a Newton iteration: a retry's, ``todo``
+        (bool ``(B,)``); the first's, every copy (None), or where the solver takes a device mask
+        (``device_copies``) and :attr:`skip_closed_copies` is set, the copies with an update to find as the right-hand
+        side's blend left them on the device (:meth:`~sim_core.ti_kernels.copy_vectors.CopyVectors.blend_actions`:
+        nothing travels), so that the copies that have converged are neither gathered nor factorised nor solved."""
+        if k:
+            return todo  # a retry: its copies' band blocks only
+        if self.pcg.device_copies and self.skip_closed_copies:
+            return self._vectors.blend_actions(todo, ~todo)
+        return None
 
     def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list,
                          vertices: np.ndarray | None = None):

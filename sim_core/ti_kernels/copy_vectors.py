@@ -34,7 +34,8 @@ REDUCTION_LANES = 64
 its partial result once (``B * REDUCTION_LANES`` atomic adds a reduction, spread over the copies, in place of one per
 DoF into the same ``B`` addresses)."""
 
-_KEEP, _TAKE, _ZERO = 0, 1, 2  # per-copy actions of _blend
+_KEEP, TAKE, _ZERO = 0, 1, 2
+"""Per-copy actions of ``_blend``: ``TAKE`` sets a copy from the source (:meth:`CopyVectors.blend_actions`)."""
 ACTION_BUFFERS = 2
 """Device buffers of per-copy blend actions that remember what they hold (:meth:`CopyVectors._copy_values`)."""
 
@@ -199,7 +200,7 @@ def _blend(dst: _VEC, src: _VEC, scale: ti.f64, action: _I32, vertex_copy: _I32,
     unchanged where it is 0."""
     for v in range(n):
         what = action[vertex_copy[v]]
-        if what == _TAKE:
+        if what == TAKE:
             for j in ti.static(range(3)):
                 dst[v, j] = scale * src[v, j]
         elif what == _ZERO:
@@ -636,11 +637,20 @@ class CopyVectors:
     def blend(self, dst, src, take: np.ndarray, zero: np.ndarray | None = None, scale: float = 1.0):
         """``dst`` with the copies in ``take`` (bool ``(B,)``) set to ``scale src`` and those in ``zero`` to 0, in
         place; returns ``dst``."""
-        action = np.where(take, _TAKE, _KEEP)
+        _blend(dst, src, float(scale), self.blend_actions(take, zero), self._vertex_copy, self.vertex_count)
+        return dst
+
+    def blend_actions(self, take: np.ndarray, zero: np.ndarray | None = None):
+        """The per-copy actions of :meth:`blend` with ``take`` and ``zero`` on the device: an int32 ndarray whose
+        first ``B`` entries are 1 (:data:`TAKE`) on the copies in ``take``, 2 on those in ``zero`` only, 0 elsewhere;
+        sent only when no action buffer holds them (:meth:`_copy_values`), so right after that blend nothing travels:
+        a per-copy mask that kernels of other modules read where the blend left it (e.g. the envelope's copies to
+        factorise, :meth:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope.factorize`). Valid until
+        :data:`ACTION_BUFFERS` other action arrays have been sent."""
+        action = np.where(take, TAKE, _KEEP)
         if zero is not None:
             action = np.where(zero & ~take, _ZERO, action)
-        _blend(dst, src, float(scale), self._copy_values(action, np.int32), self._vertex_copy, self.vertex_count)
-        return dst
+        return self._copy_values(action, np.int32)
 
     def zero_copies(self, a, mask: np.ndarray):
         """``a`` with the copies in ``mask`` (bool ``(B,)``) set to 0, in place; returns ``a``."""

@@ -147,35 +147,49 @@ def _place(urow: ti.template(), indices: ti.template(), pos: ti.template(), seg:
 
 
 @ti.kernel
+def _selected(source: _I32, todo: _I32, copies: ti.i32):
+    """``todo[c] = 1`` where ``source[c]`` is 1 (:data:`~sim_core.ti_kernels.copy_vectors.TAKE`), else 0."""
+    for c in range(copies):
+        todo[c] = 1 if source[c] == 1 else 0
+
+
+@ti.kernel
 def _assemble(data: _F64, urow: _I32, indices: _I32, nnz: ti.i32, slots: _I32, diag: _F64, nslots: ti.i32,
               fixed: _I32, nfixed: ti.i32, brow: _I32, bcol: _I32, bval: VALUES, free: _F64, nblocks: ti.i32,
               pos: _I32, seg: _I32, off: _I32, first: _I32, env: VALUES, total: ti.i32, padded: _I32, npadded: ti.i32,
-              size: ti.i32):
-    """The copies' envelopes of ``A``: zeroed, ``U``'s entries (row ``urow[k]``, column ``indices[k]``) at their
-    place, then ``diag[s]`` added at ``U``'s entries ``slots[s]`` and 1 put at its entries ``fixed`` (the diagonal
-    of :meth:`BatchedPCG.factorize`, straight into the envelope), the vertex blocks' entries in the lower triangle of
-    the order added (free DoFs only), 1 on the diagonal of padded rows (``padded``: envelope indices)."""
+              size: ti.i32, todo: _I32):
+    """The envelopes of ``A`` of the copies ``c`` with ``todo[c] != 0`` (the others' left as they are): zeroed,
+    ``U``'s entries (row ``urow[k]``, column ``indices[k]``) at their place, then ``diag[s]`` added at ``U``'s entries
+    ``slots[s]`` and 1 put at its entries ``fixed`` (the diagonal of :meth:`BatchedPCG.factorize`, straight into the
+    envelope), the vertex blocks' entries in the lower triangle of the order added (free DoFs only), 1 on the diagonal
+    of padded rows (``padded``: envelope indices)."""
     for k in range(total):
-        env[k] = stored(0.0, env)
+        if todo[k // size] != 0:
+            env[k] = stored(0.0, env)
     for k in range(nnz):
-        env[_place(urow, indices, pos, seg, off, first, size, k)] = stored(data[k], env)
+        if todo[seg[urow[k]]] != 0:
+            env[_place(urow, indices, pos, seg, off, first, size, k)] = stored(data[k], env)
     for s in range(nslots):
-        at = _place(urow, indices, pos, seg, off, first, size, slots[s])
-        env[at] = stored(ti.cast(env[at], ti.f64) + diag[s], env)
+        if todo[seg[urow[slots[s]]]] != 0:
+            at = _place(urow, indices, pos, seg, off, first, size, slots[s])
+            env[at] = stored(ti.cast(env[at], ti.f64) + diag[s], env)
     for s in range(nfixed):
-        env[_place(urow, indices, pos, seg, off, first, size, fixed[s])] = stored(1.0, env)
+        if todo[seg[urow[fixed[s]]]] != 0:
+            env[_place(urow, indices, pos, seg, off, first, size, fixed[s])] = stored(1.0, env)
     for t in range(nblocks):
-        for a in ti.static(range(3)):
-            for b in ti.static(range(3)):
-                r = 3 * brow[t] + a
-                c = 3 * bcol[t] + b
-                w = free[r] * free[c] * ti.cast(bval[9 * t + 3 * a + b], ti.f64)
-                i = pos[r]
-                j = pos[c]
-                if w != 0.0 and i >= j and j >= first[i]:  # (one outside: the envelope is widened, this done again)
-                    ti.atomic_add(env[seg[r] * size + off[i] + j - first[i]], stored(w, env))
+        if todo[seg[3 * brow[t]]] != 0:
+            for a in ti.static(range(3)):
+                for b in ti.static(range(3)):
+                    r = 3 * brow[t] + a
+                    c = 3 * bcol[t] + b
+                    w = free[r] * free[c] * ti.cast(bval[9 * t + 3 * a + b], ti.f64)
+                    i = pos[r]
+                    j = pos[c]
+                    if w != 0.0 and i >= j and j >= first[i]:  # (one outside: the envelope widened, this done again)
+                        ti.atomic_add(env[seg[r] * size + off[i] + j - first[i]], stored(w, env))
     for k in range(npadded):
-        env[padded[k]] = stored(1.0, env)
+        if todo[padded[k] // size] != 0:
+            env[padded[k]] = stored(1.0, env)
 
 
 @ti.func
@@ -656,6 +670,8 @@ class BatchedEnvelope(BatchedPCG):
     """
 
     name = "envelope"
+    device_copies = True
+    """:meth:`factorize` takes its ``copies`` as a device array too (:meth:`_select`)."""
 
     def __init__(self, segments: "np.ndarray | None" = None, precision: str = "double", refinements: int = 2,
                  lanes: int | None = None, schedule: str | None = None, group: int | None = None) -> None:
@@ -706,10 +722,13 @@ class BatchedEnvelope(BatchedPCG):
             return int(self.lanes)
         return CUDA_LANES if require_backend("BatchedEnvelope") == "cuda" else 1
 
-    def factorize(self, upper, blocks=None, diagonal: tuple | None = None, copies: "np.ndarray | None" = None,
+    def factorize(self, upper, blocks=None, diagonal: tuple | None = None, copies=None,
                   keep_bands: bool = False) -> bool:
         """Each copy's envelope Cholesky factor of ``A`` (:meth:`BatchedPCG.factorize`'s arguments and operator; of the
-        copies in ``copies`` only, where given: the others' next solves give 0); ``keep_bands`` is ignored. ``U``'s
+        copies in ``copies`` only, where given: a bool ``(B,)`` host mask or an int32 device array whose entries 1 mark
+        them, e.g. :meth:`~sim_core.ti_kernels.copy_vectors.CopyVectors.blend_actions`; the others' envelopes are
+        neither gathered nor factorised, their next solves give 0 and their :attr:`indefinite` is False);
+        ``keep_bands`` is ignored. ``U``'s
         values and ``diagonal`` go straight into the envelope on the device (``data`` a Taichi ndarray is read where it
         is: it must stay unchanged until the next solve, which may gather it again after a widening); none of the CG's
         set-up is made (its block-Jacobi preconditioner, its both-triangle operator: that one only for the refinements
@@ -745,19 +764,32 @@ class BatchedEnvelope(BatchedPCG):
         flags = self._array("env_flags", B + 1, ti.i32)  # each copy's "not positive definite", then "outside"
         _mark_outside(a["brow"], a["bcol"], a["free"], self._nblocks, a["env_pos"], a["env_first"],
                       self._array("env_need", self._m, ti.i32), flags, self._m, B)
-        if copies is None:  # every copy: the same host array each time (uploaded once)
-            if self._todo.shape != (B,) or not self._todo.all():
-                self._todo = np.ones(B, dtype=np.int32)
-        else:
-            self._todo = np.asarray(copies, dtype=np.int32)
+        self._select(copies)
         self._nnz = nnz
         self._eliminate()
         self._checked = False  # the "outside" flag is read with the next solve's (one wait for both)
         self.unconverged = np.zeros(B, dtype=bool)
         return True
 
+    def _select(self, copies) -> None:
+        """The copies to factorise (:meth:`factorize`'s ``copies``) in the device array ``env_todo`` (1: factorise):
+        every copy (None: the same host array each time, uploaded once), a host mask (uploaded), or a device array
+        whose entries 1 mark them (copied there by a kernel: nothing travels)."""
+        B = self._copies
+        if copies is None:
+            if self._todo.shape != (B,) or not self._todo.all():
+                self._todo = np.ones(B, dtype=np.int32)
+            self._upload("env_todo", self._todo, ti.i32)
+        elif isinstance(copies, np.ndarray):
+            self._todo = np.asarray(copies, dtype=np.int32)
+            self._upload("env_todo", self._todo, ti.i32)
+        else:
+            todo = self._array("env_todo", max(B, 1), ti.i32)
+            self._uploaded["env_todo"] = None  # (a host mask given next is sent)
+            _selected(copies, todo, B)
+
     def _eliminate(self) -> None:
-        """Gather each copy's envelope (of :attr:`_todo`'s copies) and factorise it."""
+        """Gather the envelopes of the copies of ``env_todo`` (:meth:`_select`) and factorise them."""
         a = self._arrays
         B, m, size = self._copies, self._m, self.entries
         env = self._array("env", max(B * size, 1), self._env_dtype)
@@ -765,10 +797,10 @@ class BatchedEnvelope(BatchedPCG):
         if diagonal is None:
             none_i, none_f = self._array("env_none_i", 1, ti.i32), self._array("env_none_f", 1)
             diagonal = (none_i, none_f, 0, none_i, 0)
+        todo = a["env_todo"]
         _assemble(data, a["env_urow"], a["indices"], self._nnz, *diagonal, a["brow"], a["bcol"], a["bval"], a["free"],
                   self._nblocks, a["env_pos"], a["seg"], a["env_off"], a["env_first"], env, B * size,
-                  a["env_padded"], self._npadded, size)
-        todo = self._upload("env_todo", self._todo, ti.i32)
+                  a["env_padded"], self._npadded, size, todo)
         if self.schedule == "panels":
             shared = require_backend("BatchedEnvelope") == "cuda"
             pcap = self._pcap

@@ -197,6 +197,40 @@ def test_a_diverged_copy_is_isolated_and_copies_left_out_get_zero(ti_cpu, schedu
     np.testing.assert_allclose(x, np.where(segments == 1, 0.0, want), rtol=0, atol=1e-10 * np.abs(want).max())
 
 
+@pytest.mark.parametrize("schedule", ["dots", "panels"])
+def test_copies_marked_on_the_device_are_solved_as_by_a_full_factorisation_and_the_others_not_touched(ti_cpu,
+                                                                                                       schedule):
+    """The copies to factorise given as a device array (a blend's actions, as the lockstep's converged copies are
+    left out): the marked copies' solutions are those of every copy's factorisation bit for bit; a copy left out
+    whose matrix holds NaN is neither gathered nor reported, and gets 0; a host mask after it is sent again."""
+    from sim_core.ti_kernels.copy_vectors import CopyVectors
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+    blocks = [_grid_block(6, 4, seed, 1.0) for seed in (31, 32, 33)]
+    m = blocks[0].shape[0]
+    segments = np.repeat(np.arange(3), m)
+    b = np.random.default_rng(9).normal(size=3 * m)
+    upper = _upper(sp.block_diag(blocks, format="csr"))
+    solver = BatchedEnvelope(segments, schedule=schedule)
+    assert solver.device_copies
+    solver.factorize(upper)
+    full = solver.solve(b)
+    rows = np.repeat(np.arange(3 * m), np.diff(upper.indptr))
+    diverged = upper.copy()
+    diverged.data = np.where(rows // m == 1, np.nan, upper.data)
+    vectors = CopyVectors(np.arange(3 * m // 3).reshape(3, m // 3))
+    marked = np.array([True, False, True])
+    solver.factorize(diverged, copies=vectors.blend_actions(marked, ~marked))
+    x = solver.solve(b)
+    assert not solver.indefinite.any()
+    np.testing.assert_array_equal(x, np.where(segments == 1, 0.0, full))
+    solver.factorize(diverged, copies=np.array([True, True, False]))
+    x = solver.solve(b)
+    assert list(solver.indefinite) == [False, True, False]
+    np.testing.assert_array_equal(x[:m], full[:m])
+    np.testing.assert_array_equal(x[2 * m:], 0.0)
+
+
 def test_values_on_the_device_go_straight_into_the_envelope_without_the_cgs_set_up(ti_cpu):
     """``U``'s values handed over as a device array, with the inertia diagonal and the fixed DoFs' 1: the solve is
     exact and none of the CG's set-up is made (no block-Jacobi inverse, no both-triangle operator); the operator is
