@@ -331,3 +331,43 @@ def test_lockstep_with_the_step_sides_from_device_codes_takes_the_host_sides_ste
             np.testing.assert_allclose(device_states[k][i].x, host_states[k][i].x, rtol=0, atol=1e-15)
     for i in (0, 2):
         assert np.max(np.abs(device_states[-1][i].x - separate_run(model, PARAMS[i], MOTIONS[i])[-1].x)) <= TOL
+
+
+
+def test_the_envelope_skips_the_copies_that_have_converged_and_every_copy_steps_as_before(model, monkeypatch):
+    """A Newton iteration's envelope gathers, factorises and solves only the copies with an update to find
+    (``LockstepSolver.skip_closed_copies``): with the copies converging at different iterations, fewer copies are
+    factorised than the step's iterations times the copies; a converged copy stays bit for bit where it stopped
+    through the iterations of the others, and every copy takes the iterations and reaches the states of the batch
+    that factorises every copy (to round-off: the parallel CPU kernels' atomic sums vary from run to run)."""
+    from sim_core.batch.lockstep import LockstepSolver
+
+    search = LockstepSolver._line_search_copies
+    held_still = []
+
+    def watched(self, step, x, d, alpha, slope, open_, *args):
+        start = x.host.copy()
+        out = search(self, step, x, d, alpha, slope, open_, *args)
+        closed = self.scene.index[~open_].ravel()
+        np.testing.assert_array_equal(out[0].host[closed], start[closed])
+        held_still.append(len(closed))
+        return out
+
+    runs = {}
+    for skip in (False, True):
+        monkeypatch.setattr(LockstepSolver, "skip_closed_copies", skip)
+        monkeypatch.setattr(LockstepSolver, "_line_search_copies", watched if skip else search)
+        batch = _lockstep_batch(model, LOCKSTEP_ENVELOPE)
+        per_step, results = _run(batch, steps=2)
+        runs[skip] = (per_step, results, batch.lockstep.solver.copies_factorized)
+    (states, results, full), (skipped_states, skipped_results, skipped) = runs[False], runs[True]
+    iterations = [[info.iterations for info in res.infos] for res in results]
+    assert iterations == [[info.iterations for info in res.infos] for res in skipped_results]
+    assert any(len(set(its)) > 1 for its in iterations)  # copies that converge before the slowest one
+    assert full >= sum(3 * max(its) for its in iterations)
+    assert skipped <= full - sum(max(its) - min(its) for its in iterations)
+    assert sum(held_still) > 0  # line searches with converged copies in the batch
+    for got_step, want_step in zip(skipped_states, states):
+        for got, want in zip(got_step, want_step):
+            assert np.max(np.abs(got.x - want.x)) <= 1e-15
+            assert np.max(np.abs(got.v - want.v)) <= 1e-15 / 0.005
