@@ -10,7 +10,8 @@ per term (one kernel launch per fused energy on a Taichi backend), assembles one
   the solver's stopping tests (:func:`sim_core.newton_stop.stop_reason`: velocity, force, stalled; the
   simplified Newton test, below); a copy
   that has converged takes no further update (its right-hand side is zeroed, so its block of the
-  solution is zero) while the others iterate;
+  solution is zero) while the others iterate; the envelope neither gathers nor factorises its matrix
+  (:attr:`LockstepSolver.skip_closed_copies`; the other terms are still evaluated for every copy);
 * step size: the displacement cap ``max_displacement`` and the backtracking line search act per copy:
   a copy keeps a step once it passes, the others halve theirs. The per-copy gradient is a slice of the
   stacked gradient, and each term's energy is split by copy (capability
