@@ -126,6 +126,17 @@ def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_i
     solver.factorize((upper.indptr, upper.indices, upper.data.copy()), vb, (diag_slots, diag_values, fixed))
     assert solver.widenings == 1
     np.testing.assert_allclose(solver.solve(b), want, rtol=0, atol=1e-10 * np.abs(want).max())
+    # a fresh envelope given copy 1 alone as a device mask: widened by its block, factorised again with the same mask
+    from sim_core.ti_kernels.copy_vectors import CopyVectors
+
+    one = np.array([False, True])
+    solver = BatchedEnvelope(segments, schedule=schedule)
+    solver.factorize((upper.indptr, upper.indices, upper.data.copy()), vb, (diag_slots, diag_values, fixed),
+                     copies=CopyVectors(np.arange(n // 3).reshape(2, -1)).blend_actions(one, ~one))
+    x = solver.solve(b)
+    assert solver.widenings == 1 and not solver.indefinite.any()
+    np.testing.assert_array_equal(x[:m], 0.0)
+    np.testing.assert_allclose(x[m:], want[m:], rtol=0, atol=1e-10 * np.abs(want).max())
 
 
 @pytest.mark.parametrize("schedule", ["dots", "panels"])
