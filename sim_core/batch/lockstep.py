@@ -173,7 +173,9 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
     factorisation and solve are those of the copies with an update to find only: the copies that have converged (and
     those with a zero gradient) are neither gathered into the envelope nor factorised nor substituted, at no extra
     transfer (:meth:`_copies_to_factorize`). Their update is 0 either way (their right-hand side is 0); the results are
-    the same bit for bit. False: every copy's matrix each iteration."""
+    the same bit for bit. The device solver's factors after a step then hold the matrices of the copies open at its
+    last iteration only (``last_factorization``; no user of a lockstep batch solves with it: the batched adjoint
+    factorises its own). False: every copy's matrix each iteration."""
 
     def __init__(self, scene: StackedScene, config: SolverConfig | None = None) -> None:
         config = config or SolverConfig()
