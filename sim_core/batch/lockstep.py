@@ -172,11 +172,11 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
     """With a device solver that takes a device mask (the envelope, ``device_copies``), a Newton iteration's first
     factorisation and solve are those of the copies with an update to find only: the copies that have converged (and
     those with a zero gradient) are neither gathered into the envelope nor factorised nor substituted, at no extra
-    transfer (:meth:`_copies_to_factorize`). Their update is 0 either way (their right-hand side is 0) and the open copies'
-    arithmetic is unchanged: the results are those of factorising every copy (to the parallel kernels' run-to-run
-    round-off of their atomic sums). The device solver's factors after a step then hold the matrices of the copies open at its
-    last iteration only (``last_factorization``; no user of a lockstep batch solves with it: the batched adjoint
-    factorises its own). False: every copy's matrix each iteration."""
+    transfer (:meth:`_copies_to_factorize`). Their update is 0 either way (their right-hand side is 0) and the open
+    copies' arithmetic is unchanged: the results are those of factorising every copy (to the parallel kernels'
+    run-to-run round-off of their atomic sums). The device solver's factors after a step then hold the matrices of
+    the copies open at its last iteration only (``last_factorization``; no user of a lockstep batch solves with it:
+    the batched adjoint factorises its own). False: every copy's matrix each iteration."""
 
     def __init__(self, scene: StackedScene, config: SolverConfig | None = None) -> None:
         config = config or SolverConfig()
