@@ -5,9 +5,10 @@ Usage: ``python benchmarks/time_kernel_prep.py --cache DIR [--arch cpu|cuda] [--
 [--emulate-cuda] [--single]``. Runs a lockstep population of ``B`` perturbed reference trajectories of the task
 (``sim_core.bench.batch._TaskRun``), ``--steps`` steps, in this process, with Taichi's offline cache in ``DIR``
 (an empty directory: a cold cache; the same directory again in a new process: a warm one), and ``--single``
-one single environment of the task as well. ``--emulate-cuda`` (CPU arch only) runs the population once on the
-CPU paths, then again with every arch query answering "cuda" (``benchmarks/emulated_cuda.py``), and reports the
-second run's new kernels: the kernel set of a CUDA generation, prepared on the CPU arch.
+one single environment of the task as well. ``--emulate-cuda`` (CPU arch only) makes every arch query answer
+"cuda" (``benchmarks/emulated_cuda.py``, after importing the kernel packages): the kernel set of a CUDA generation,
+prepared on the CPU arch. ``--populations N`` builds and runs N populations one after the other (a later one
+prepares only kernel instances that the first did not).
 
 For every kernel instance prepared (Taichi ``Kernel`` and its template instance) it reports, in CPU seconds of this
 process (``time.process_time``: on a shared machine wall seconds measure the neighbours' load; ``--clock wall`` on
@@ -68,11 +69,12 @@ def _instrument(records: dict, later: dict) -> None:
         launched.add(id(t_kernel))
         prog = impl.get_runtime().prog
         t0 = _clock()
-        prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)  # kept in Taichi's memory cache
+        compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)  # kept in Taichi's memory
         t1 = _clock()
         result = launch(self, t_kernel, *args)
         rec = records.setdefault(id(t_kernel), [name_of(self), 0.0, 0.0, 0.0])
         rec[2], rec[3] = t1 - t0, _clock() - t1
+        rec.append(compiled)  # one object per compiled kernel (offline-cache key): instances of one key share it
         return result
 
     kernel_impl.Kernel.materialize, kernel_impl.Kernel.launch_kernel = timed_materialize, timed_launch
@@ -81,13 +83,15 @@ def _instrument(records: dict, later: dict) -> None:
 def _report(title: str, records: dict, later: dict, wall: float, shown: int = 12) -> None:
     """Print the kernels prepared since the last report, the ``shown`` slowest (and clear them)."""
     rows = []
-    for name, frontend, lookup, first in records.values():
+    compiled = {id(rec[4]) for rec in records.values() if len(rec) > 4}
+    for name, frontend, lookup, first, *_ in records.values():
         times = sorted(later.get(name, [0.0]))
         first = max(first - times[len(times) // 2], 0.0)  # less a later launch's own time
         rows.append((frontend + lookup + first, name, frontend, lookup, first))
     n = len(rows)
     tot = [sum(r[k] for r in rows) for k in (2, 3, 4)]
-    print(f"--- {title}: {wall:.2f} s; {n} kernel instances of {len({r[1] for r in rows})} kernels prepared; "
+    print(f"--- {title}: {wall:.2f} s; {n} kernel instances of {len({r[1] for r in rows})} kernels, "
+          f"{len(compiled)} compiled kernels (cache keys) prepared; "
           f"frontend {tot[0]:.2f} s, lookup {tot[1]:.2f} s, first launch {tot[2]:.2f} s; a kernel "
           f"{(sum(tot) / max(n, 1)) * 1e3:.0f} ms ({tot[0] / max(n, 1) * 1e3:.0f} / {tot[1] / max(n, 1) * 1e3:.0f} / "
           f"{tot[2] / max(n, 1) * 1e3:.0f})")
@@ -106,6 +110,9 @@ def main() -> int:
     ap.add_argument("--B", type=int, default=4)
     ap.add_argument("--steps", type=int, default=2)
     ap.add_argument("--emulate-cuda", action="store_true")
+    ap.add_argument("--linear-solver", default=None,
+                    help="the copies' linear solver (SolverConfig.linear_solver; envelope: CUDA's default device solver)")
+    ap.add_argument("--populations", type=int, default=1, help="populations built and run one after the other")
     ap.add_argument("--single", action="store_true", help="also one single environment of the task")
     ap.add_argument("--shown", type=int, default=12, help="kernels listed a part, the slowest first")
     ap.add_argument("--clock", choices=tuple(_CLOCKS), default="cpu", help="CPU seconds of this process, or wall")
@@ -121,22 +128,30 @@ def main() -> int:
     init_backend(args.arch, offline_cache_dir=args.cache)
     print(f"imports and Taichi init: {_clock() - t0:.2f} s")
     if args.emulate_cuda:
+        import importlib
+        import pkgutil
+
         from emulated_cuda import gpu_sum_cells  # (benchmarks/, the script's folder)
 
         gpu_sum_cells()
+        for package_name in ("sim_core.energies", "sim_core.candidates", "sim_core.ti_kernels", "sim_core.batch"):
+            package = importlib.import_module(package_name)  # (imported before the arch query changes)
+            for info in pkgutil.walk_packages(package.__path__, package_name + "."):
+                importlib.import_module(info.name)
     records: dict = {}
     later: dict = {}
     _instrument(records, later)
     backend = ARCH_BACKENDS[args.arch]
-    for k in range(2 if args.emulate_cuda else 1):
-        if k == 1:
-            from emulated_cuda import answer_cuda  # (benchmarks/, the script's folder)
+    if args.emulate_cuda:
+        from emulated_cuda import answer_cuda  # (benchmarks/, the script's folder)
 
-            answer_cuda()
+        answer_cuda()
+    for k in range(args.populations):
         t = _clock()
-        run = _TaskRun(args.task, args.B, args.steps, backend, True)
+        run = _TaskRun(args.task, args.B, args.steps, backend, True, linear_solver=args.linear_solver)
         run.run()
-        _report(f"population B = {args.B}, {args.steps} steps" + (" (CUDA paths emulated)" if k else ""),
+        _report(f"population {k + 1}: B = {args.B}, {args.steps} steps" + (" (CUDA paths emulated)" if args.emulate_cuda
+                                                                              else ""),
                 records, later, _clock() - t, args.shown)
         del run
     if args.single:
