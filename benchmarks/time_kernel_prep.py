@@ -1,10 +1,11 @@
 """Where a process's Taichi kernel preparation goes, kernel by kernel: the frontend, the compiled kernel's lookup or
 compilation, and its first launch (the code generation of the cached module and its load).
 
-Usage: ``python benchmarks/time_kernel_prep.py --cache DIR [--arch cpu|cuda] [--task folding_u] [--B 4] [--steps 2]
+Usage: ``python benchmarks/time_kernel_prep.py [--cache DIR] [--arch cpu|cuda] [--task folding_u] [--B 4] [--steps 2]
 [--emulate-cuda] [--single]``. Runs a lockstep population of ``B`` perturbed reference trajectories of the task
 (``sim_core.bench.batch._TaskRun``), ``--steps`` steps, in this process, with Taichi's offline cache in ``DIR``
-(an empty directory: a cold cache; the same directory again in a new process: a warm one), and ``--single``
+(an empty directory: a cold cache; the same directory again in a new process: a warm one; default Taichi's
+``~/.cache/taichi/ticache``), and ``--single``
 one single environment of the task as well. ``--emulate-cuda`` (CPU arch only) makes every arch query answer
 "cuda" (``benchmarks/emulated_cuda.py``, after importing the kernel packages): the kernel set of a CUDA generation,
 prepared on the CPU arch. ``--populations N`` builds and runs N populations one after the other (a later one
@@ -22,7 +23,9 @@ an idle one):
   CPU the ORC JIT's code generation, on CUDA LLVM's O3 passes, PTX emission and the driver's module load; plus
   the launch itself), minus the launch time a later call of the same instance takes.
 
-Then the totals, the number of distinct kernel instances and compiled-kernel keys, and the slowest kernels.
+Then the totals, the number of kernel instances and of compiled kernels new to the process (an instance whose compiled
+kernel another instance already brought, under its own offline-cache key, paid the frontend again), and the slowest
+kernels.
 """
 
 from __future__ import annotations
@@ -38,9 +41,11 @@ _clock = time.process_time
 measure the neighbours)."""
 
 
-def _instrument(records: dict, later: dict) -> None:
+def _instrument(records: dict, later: dict, compiled: dict) -> None:
     """Wrap Taichi's ``Kernel.materialize`` and ``Kernel.launch_kernel``: ``records[id(instance)]`` gathers each
-    kernel instance's ``[name, frontend, lookup, first launch]`` (s), ``later[name]`` its later launches' seconds."""
+    kernel instance's ``[name, frontend, lookup, first launch, compiled kernel]`` (s), ``later[name]`` its later
+    launches' seconds, ``compiled`` every compiled kernel of the process by id (kept alive: Taichi hands out one object
+    per compiled kernel, which template instances of one offline-cache key share)."""
     from taichi.lang import impl, kernel_impl
 
     materialize, launch = kernel_impl.Kernel.materialize, kernel_impl.Kernel.launch_kernel
@@ -55,7 +60,7 @@ def _instrument(records: dict, later: dict) -> None:
         t = _clock()
         materialize(self, key, args, arg_features)
         if new:
-            records[id(self.compiled_kernels[used])] = [name_of(self), _clock() - t, 0.0, 0.0]
+            records[id(self.compiled_kernels[used])] = [name_of(self), _clock() - t, 0.0, 0.0, None]
 
     launched: set = set()
 
@@ -69,12 +74,13 @@ def _instrument(records: dict, later: dict) -> None:
         launched.add(id(t_kernel))
         prog = impl.get_runtime().prog
         t0 = _clock()
-        compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)  # kept in Taichi's memory
+        ckd = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)  # kept in Taichi's memory cache
         t1 = _clock()
         result = launch(self, t_kernel, *args)
-        rec = records.setdefault(id(t_kernel), [name_of(self), 0.0, 0.0, 0.0])
+        rec = records.setdefault(id(t_kernel), [name_of(self), 0.0, 0.0, 0.0, None])
         rec[2], rec[3] = t1 - t0, _clock() - t1
-        rec.append(compiled)  # one object per compiled kernel (offline-cache key): instances of one key share it
+        if id(ckd) not in compiled:
+            compiled[id(ckd)] = rec[4] = ckd  # this instance brought a compiled kernel the process did not have
         return result
 
     kernel_impl.Kernel.materialize, kernel_impl.Kernel.launch_kernel = timed_materialize, timed_launch
@@ -83,20 +89,20 @@ def _instrument(records: dict, later: dict) -> None:
 def _report(title: str, records: dict, later: dict, wall: float, shown: int = 12) -> None:
     """Print the kernels prepared since the last report, the ``shown`` slowest (and clear them)."""
     rows = []
-    compiled = {id(rec[4]) for rec in records.values() if len(rec) > 4}
-    for name, frontend, lookup, first, *_ in records.values():
+    for name, frontend, lookup, first, new in records.values():
         times = sorted(later.get(name, [0.0]))
         first = max(first - times[len(times) // 2], 0.0)  # less a later launch's own time
-        rows.append((frontend + lookup + first, name, frontend, lookup, first))
+        rows.append((frontend + lookup + first, name, frontend, lookup, first, new is not None))
     n = len(rows)
     tot = [sum(r[k] for r in rows) for k in (2, 3, 4)]
     print(f"--- {title}: {wall:.2f} s; {n} kernel instances of {len({r[1] for r in rows})} kernels, "
-          f"{len(compiled)} compiled kernels (cache keys) prepared; "
+          f"{sum(r[5] for r in rows)} new compiled kernels prepared; "
           f"frontend {tot[0]:.2f} s, lookup {tot[1]:.2f} s, first launch {tot[2]:.2f} s; a kernel "
           f"{(sum(tot) / max(n, 1)) * 1e3:.0f} ms ({tot[0] / max(n, 1) * 1e3:.0f} / {tot[1] / max(n, 1) * 1e3:.0f} / "
           f"{tot[2] / max(n, 1) * 1e3:.0f})")
-    for total, name, frontend, lookup, first in sorted(rows, reverse=True)[:shown]:
-        print(f"  {name:60s} {total:7.3f} s  (frontend {frontend:.3f}, lookup {lookup:.3f}, first launch {first:.3f})")
+    for total, name, frontend, lookup, first, new in sorted(rows, reverse=True)[:shown]:
+        print(f"  {name:60s} {total:7.3f} s  (frontend {frontend:.3f}, lookup {lookup:.3f}, first launch {first:.3f})"
+              + ("" if new else "  [compiled kernel already prepared: the frontend again]"))
     sys.stdout.flush()
     records.clear()
     later.clear()
@@ -105,7 +111,8 @@ def _report(title: str, records: dict, later: dict, wall: float, shown: int = 12
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
-    ap.add_argument("--cache", required=True, help="Taichi's offline cache directory (empty: a cold cache)")
+    ap.add_argument("--cache", default=None,
+                    help="Taichi's offline cache directory (empty: a cold cache; default: Taichi's own)")
     ap.add_argument("--task", default="folding_u")
     ap.add_argument("--B", type=int, default=4)
     ap.add_argument("--steps", type=int, default=2)
@@ -140,7 +147,7 @@ def main() -> int:
                 importlib.import_module(info.name)
     records: dict = {}
     later: dict = {}
-    _instrument(records, later)
+    _instrument(records, later, {})
     backend = ARCH_BACKENDS[args.arch]
     if args.emulate_cuda:
         from emulated_cuda import answer_cuda  # (benchmarks/, the script's folder)
