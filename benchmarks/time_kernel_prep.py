@@ -36,16 +36,15 @@ import sys
 import time
 
 _CLOCKS = {"cpu": time.process_time, "wall": time.perf_counter}
-_clock = time.process_time
-"""The clock of every figure (``--clock``): by default this process's CPU seconds (on a shared machine wall seconds
-measure the neighbours)."""
+"""The clocks of ``--clock``: by default this process's CPU seconds (on a shared machine wall seconds measure the
+neighbours)."""
 
 
-def _instrument(records: dict, later: dict, compiled: dict) -> None:
+def _instrument(records: dict, later: dict, compiled: dict, clock=time.process_time) -> None:
     """Wrap Taichi's ``Kernel.materialize`` and ``Kernel.launch_kernel``: ``records[id(instance)]`` gathers each
     kernel instance's ``[name, frontend, lookup, first launch, compiled kernel]`` (s), ``later[name]`` its later
     launches' seconds, ``compiled`` every compiled kernel of the process by id (kept alive: Taichi hands out one object
-    per compiled kernel, which template instances of one offline-cache key share)."""
+    per compiled kernel, which template instances of one offline-cache key share); seconds of ``clock``."""
     from taichi.lang import impl, kernel_impl
 
     materialize, launch = kernel_impl.Kernel.materialize, kernel_impl.Kernel.launch_kernel
@@ -57,28 +56,28 @@ def _instrument(records: dict, later: dict, compiled: dict) -> None:
     def timed_materialize(self, key=None, args=None, arg_features=None):
         used = key or (self.func, 0, self.autodiff_mode)
         new = used not in self.compiled_kernels
-        t = _clock()
+        t = clock()
         materialize(self, key, args, arg_features)
         if new:
-            records[id(self.compiled_kernels[used])] = [name_of(self), _clock() - t, 0.0, 0.0, None]
+            records[id(self.compiled_kernels[used])] = [name_of(self), clock() - t, 0.0, 0.0, None]
 
     launched: set = set()
 
     @functools.wraps(launch)
     def timed_launch(self, t_kernel, *args):
         if id(t_kernel) in launched:
-            t = _clock()
+            t = clock()
             result = launch(self, t_kernel, *args)
-            later.setdefault(name_of(self), []).append(_clock() - t)
+            later.setdefault(name_of(self), []).append(clock() - t)
             return result
         launched.add(id(t_kernel))
         prog = impl.get_runtime().prog
-        t0 = _clock()
+        t0 = clock()
         ckd = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)  # kept in Taichi's memory cache
-        t1 = _clock()
+        t1 = clock()
         result = launch(self, t_kernel, *args)
         rec = records.setdefault(id(t_kernel), [name_of(self), 0.0, 0.0, 0.0, None])
-        rec[2], rec[3] = t1 - t0, _clock() - t1
+        rec[2], rec[3] = t1 - t0, clock() - t1
         if id(ckd) not in compiled:
             compiled[id(ckd)] = rec[4] = ckd  # this instance brought a compiled kernel the process did not have
         return result
@@ -124,16 +123,15 @@ def main() -> int:
     ap.add_argument("--shown", type=int, default=12, help="kernels listed a part, the slowest first")
     ap.add_argument("--clock", choices=tuple(_CLOCKS), default="cpu", help="CPU seconds of this process, or wall")
     args = ap.parse_args()
-    global _clock
-    _clock = _CLOCKS[args.clock]
+    clock = _CLOCKS[args.clock]
     if args.emulate_cuda and args.arch != "cpu":
         ap.error("--emulate-cuda emulates the CUDA paths on the CPU arch: --arch cpu")
-    t0 = _clock()
+    t0 = clock()
     from sim_core.bench.batch import ARCH_BACKENDS, _TaskRun
     from sim_core.ti_backend import init_backend
 
     init_backend(args.arch, offline_cache_dir=args.cache)
-    print(f"imports and Taichi init: {_clock() - t0:.2f} s")
+    print(f"imports and Taichi init: {clock() - t0:.2f} s")
     if args.emulate_cuda:
         import importlib
         import pkgutil
@@ -147,28 +145,28 @@ def main() -> int:
                 importlib.import_module(info.name)
     records: dict = {}
     later: dict = {}
-    _instrument(records, later, {})
+    _instrument(records, later, {}, clock)
     backend = ARCH_BACKENDS[args.arch]
     if args.emulate_cuda:
         from emulated_cuda import answer_cuda  # (benchmarks/, the script's folder)
 
         answer_cuda()
     for k in range(args.populations):
-        t = _clock()
+        t = clock()
         run = _TaskRun(args.task, args.B, args.steps, backend, True, linear_solver=args.linear_solver)
         run.run()
         _report(f"population {k + 1}: B = {args.B}, {args.steps} steps" + (" (CUDA paths emulated)" if args.emulate_cuda
                                                                               else ""),
-                records, later, _clock() - t, args.shown)
+                records, later, clock() - t, args.shown)
         del run
     if args.single:
         from sim_core.tasks.registry import load_task
         from sim_core.tasks.rollout import rollout
 
         task = load_task(args.task)
-        t = _clock()
+        t = clock()
         rollout(task, task.reference_actions[: args.steps], task.true_parameters or None, backend=backend)
-        _report(f"single environment, {args.steps} steps", records, later, _clock() - t, args.shown)
+        _report(f"single environment, {args.steps} steps", records, later, clock() - t, args.shown)
     return 0
 
 
