@@ -1,7 +1,8 @@
 """Ahead-of-time compilation of the Taichi kernels a Newton step runs: the fused elastic parts, their projected
 Hessians, the contact, broad-phase, candidate and friction kernels (:func:`compile_kernels`), and the kernels an
-elastic worker runs (:func:`compile_offload_kernels`). Taichi compiles a kernel at its first call; running these
-first keeps the compilation out of the first step and lets a parent compile before it forks its workers.
+elastic worker runs (:func:`compile_offload_kernels`), those of a simulator node's scene (:func:`compile_scene`) and of
+a task's batched optimiser (:func:`compile_task`). Taichi compiles a kernel at its first call; running these first
+keeps the compilation out of the first step and lets a parent compile before it forks its workers.
 """
 
 from __future__ import annotations
@@ -156,10 +157,61 @@ def compile_scene(scene, steps: int = 4, press: float = 2.0e-4, arch: str = "cpu
     return {"scene": str(getattr(scene, "name", scene)), "compile_s": t1 - t0, "steps_s": time.perf_counter() - t1}
 
 
+def compile_task(name: str, arch: str = "cpu", copies: int = 2, steps: int = 2, seed: int = 0) -> dict:
+    """Compile (or load from the offline cache) the Taichi kernels that ``thinshell optimise NAME --batched`` runs:
+    the optimiser's own batched evaluator (:func:`sim_core.optim.evaluators.make_evaluator`, the solver settings of
+    :func:`~sim_core.optim.evaluators.optimiser_solver_config`: on ``cuda`` the lockstep's device solver, its contact,
+    friction and iterate kernels) on a population of ``copies`` action sequences of ``steps`` steps, then one single
+    environment of the same sequence (the replays ``thinshell optimise`` writes its outputs with).
+
+    Taichi writes the kernels a process compiled into its offline cache (at exit:
+    :func:`sim_core.ti_backend.write_offline_cache`), so an optimiser started after this compiles none of them; each
+    process still generates their code from the cache at their first launch (docs/benchmarks_log.md, session 56).
+
+    Args:
+        name: a task name (``config/tasks``) or a task file.
+        arch: ``cpu`` or ``cuda``.
+        copies: copies of the population (>= 2: a lockstep batch).
+        steps: steps of each sequence, 1 .. the task's horizon.
+        seed: seed of the copies' perturbations.
+
+    Returns:
+        ``{"task": name, "kernels_s": s}``.
+
+    Raises:
+        ConfigError: unknown task, ``copies`` < 2, ``steps`` outside 1 .. the horizon, or the Taichi backend cannot
+            start.
+    """
+    # optional heavy dependency: the tasks and the optimiser's evaluators, loaded when compiling
+    from sim_core.backend import backend_of_arch
+    from sim_core.errors import ConfigError
+    from sim_core.optim.evaluators import make_evaluator, optimiser_solver_config
+    from sim_core.tasks.registry import load_task
+
+    task = load_task(name)
+    if copies < 2:
+        raise ConfigError(f"compile_task: {copies} copies; a lockstep batch needs at least 2")
+    if not 1 <= steps <= task.horizon:
+        raise ConfigError(f"compile_task: {steps} steps; task {task.name} takes 1 .. {task.horizon}")
+    t0 = time.perf_counter()
+    config = optimiser_solver_config(backend_of_arch(arch))
+    low, high = task.action_low, task.action_high
+    start = task.reference_actions[:steps] if task.reference_actions is not None else \
+        np.tile((low + high) / 2.0, (steps, 1))
+    rng = np.random.default_rng(seed)
+    actions = [start] + [np.clip(start + rng.uniform(-0.1, 0.1, start.shape) * (high - low), low, high)
+                         for _ in range(copies - 1)]
+    make_evaluator(task, horizon=steps, solver_config=config, batched=True).evaluate(actions)
+    make_evaluator(task, horizon=steps, solver_config=config).evaluate(actions[:1])
+    return {"task": task.name, "kernels_s": time.perf_counter() - t0}
+
+
 def compile_main(argv: Sequence[str]) -> int:
-    """``thinshell compile [--scene S ...] [--arch cpu|cuda] [--steps N]``: compile the simulator's Taichi
-    kernels once, ahead of the first run, into Taichi's offline cache (``make setup`` runs it); later
-    processes load them instead of compiling. Prints one line a scene and the total time."""
+    """``thinshell compile [--scene S ...] [--task T ...] [--arch cpu|cuda] [--steps N]``: compile the simulator's
+    Taichi kernels once, ahead of the first run, into Taichi's offline cache (``make setup`` runs it for the bundled
+    scenes); later processes load them instead of compiling. ``--task``: the kernels of ``thinshell optimise T
+    --batched`` on that arch (:func:`compile_task`), instead of the bundled scenes unless ``--scene`` is given too.
+    Prints one line a scene or task and the total time."""
     import argparse
 
     # optional heavy dependency: the bundled scenes and the Taichi runtime, loaded when compiling
@@ -169,18 +221,24 @@ def compile_main(argv: Sequence[str]) -> int:
     p = argparse.ArgumentParser(prog="thinshell compile", description=compile_main.__doc__.split("\n")[0])
     p.add_argument("--scene", nargs="+", default=None, help="scene files (default: the bundled "
                    + ", ".join(COMPILE_SCENES) + ")")
+    p.add_argument("--task", nargs="+", default=[],
+                   help="tasks whose batched optimiser's kernels to compile (thinshell optimise TASK --batched)")
     p.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--steps", type=int, default=4, help="steps taken on each scene after compiling (default 4)")
     args = p.parse_args(list(argv))
     if args.steps < 0:
         p.error("--steps must be >= 0")
-    scenes = args.scene or [config_dir() / name for name in COMPILE_SCENES]
+    scenes = args.scene or ([] if args.task else [config_dir() / name for name in COMPILE_SCENES])
     t0 = time.perf_counter()
     init_backend(args.arch)
-    print(f"thinshell compile: compiling the simulator's kernels for {len(scenes)} scene(s) into Taichi's "
-          f"offline cache (once per machine; later runs load them)", flush=True)
-    t_offload = compile_offload_kernels()
-    print(f"  elastic worker kernels: {t_offload:.1f} s", flush=True)
+    print(f"thinshell compile: compiling the simulator's kernels for {len(scenes)} scene(s) and {len(args.task)} "
+          f"task(s) into Taichi's offline cache (once per machine; later runs load them)", flush=True)
+    if scenes:
+        t_offload = compile_offload_kernels()
+        print(f"  elastic worker kernels: {t_offload:.1f} s", flush=True)
+    for name in args.task:
+        out = compile_task(name, arch=args.arch)
+        print(f"  task {out['task']} (batched optimiser): {out['kernels_s']:.1f} s", flush=True)
     for scene in scenes:
         out = compile_scene(scene, steps=args.steps, arch=args.arch)
         print(f"  {out['scene']}: {out['compile_s']:.1f} s compile, {out['steps_s']:.1f} s for {args.steps} steps",

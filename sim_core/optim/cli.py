@@ -195,9 +195,9 @@ def optimise_main(argv: list[str]) -> int:
                           sigma=args.sigma if args.sigma is not None else task.cma_sigma,
                           population=args.population if args.population is not None else task.cma_population,
                           **({"learning_rate": args.learning_rate} if args.learning_rate is not None else {}), meta=meta)
-    from sim_core.optim.evaluators import make_evaluator
+    from sim_core.optim.evaluators import make_evaluator, optimiser_solver_config
 
-    solver_config = SolverConfig(backend=args.backend, dt_halvings_on_failure=0)
+    solver_config = optimiser_solver_config(args.backend)
     evaluator = make_evaluator(task, args.workers, horizon, params, args.address, solver_config, batched=args.batched,
                                batch_size=args.batch_size)
     try:

@@ -294,6 +294,13 @@ def _package_root() -> str:
     return str(Path(sim_core.__file__).resolve().parents[1])
 
 
+def optimiser_solver_config(backend: str) -> SolverConfig:
+    """The solver settings of every rollout ``thinshell optimise`` runs (:func:`sim_core.optim.cli.optimise_main`)
+    and :func:`sim_core.kernel_compile.compile_task` prepares the kernels of: ``backend``, no time-step halving after a
+    failed step (a failed rollout is infeasible, not retried)."""
+    return SolverConfig(backend=backend, dt_halvings_on_failure=0)
+
+
 def make_evaluator(task, workers: int = 1, horizon: int | None = None, params: Mapping[str, float] | None = None,
                    address: str | None = None, solver_config: SolverConfig | None = None, batched: bool = False,
                    batch_size: int | str | None = None):
