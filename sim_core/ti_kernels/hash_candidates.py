@@ -42,7 +42,7 @@ def _vertices_kernel(keys: _I64_1, count: ti.i32, first_vertices: _I32_2, first_
     for k in range(count):
         key = keys[k]
         first = ti.cast(key >> 32, ti.i32)
-        second = ti.cast(key & 0xFFFFFFFF, ti.i32)
+        second = ti.cast(key - (ti.cast(first, ti.i64) << 32), ti.i32)  # (keys >= 0: the low 32 bits)
         if first_is_vertex != 0:
             out[k, 0] = first
             for c in ti.static(range(3)):
