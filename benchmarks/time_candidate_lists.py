@@ -2,7 +2,8 @@
 
 Usage: ``python benchmarks/time_candidate_lists.py --arch cuda --B 256,1024 --repeat 5``; ``--arch cpu
 --emulate-cuda`` runs the CUDA paths on the CPU arch (:mod:`emulated_cuda`). Builds ``B`` Forming copies
-(``sim_core.bench.batch._FormingRun``), steps them twice, then ``--repeat`` times drops the contact set's lists (the
+(``sim_core.bench.batch._FormingRun``), steps them ``--steps`` times (the steady scene-steps/s of the steps after the
+first reported: ``thinshell bench batch``'s rate), then ``--repeat`` times drops the contact set's lists (the
 search, its sides, vertices and pair batch: what a trial point outside the last search's cover costs) and builds them
 again with :meth:`~sim_core.contact_set.ContactSet.potentials` at the batch's positions, the step's memory. Reports a
 build's wall time (ms, median), the part of it inside Taichi launches and synchronous copies (cProfile, the launch
@@ -26,6 +27,7 @@ def main() -> int:
     ap.add_argument("--arch", default="cpu", choices=("cpu", "cuda"))
     ap.add_argument("--B", default="8", help="copies; a comma-separated list times each size in turn")
     ap.add_argument("--repeat", type=int, default=3, help="builds a size (the median is reported)")
+    ap.add_argument("--steps", type=int, default=2, help="steps before the builds (at least 2)")
     ap.add_argument("--top", type=int, default=0, help="also the last build's N functions of most own time")
     ap.add_argument("--emulate-cuda", action="store_true",
                     help="on the CPU arch: every sim_core arch query answers cuda (the CUDA paths, emulated)")
@@ -47,8 +49,10 @@ def main() -> int:
         answer_cuda()
     counts = _count_device_traffic()
     for B in (int(b) for b in str(args.B).split(",")):
-        run = _FormingRun(B, 2, backend, lockstep=True)
-        run.run()
+        run = _FormingRun(B, max(args.steps, 2), backend, lockstep=True)
+        per_step = run.run()[3][1:]
+        print(f"B={B}: steady {sum(n for n, _ in per_step) / sum(w for _, w in per_step):.0f} scene-steps/s (steps "
+              f"2-{len(per_step) + 1}, {1e3 * sum(w for _, w in per_step) / len(per_step):.1f} ms a step)", flush=True)
         engine = run.batch.lockstep
         solver = engine.solver
         contact, x = solver.contact, engine.state.x
