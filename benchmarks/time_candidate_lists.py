@@ -22,6 +22,8 @@ import statistics
 import sys
 import time
 
+from emulated_cuda import add_emulation_flag, init_arch  # (benchmarks/, the script's folder)
+
 
 def main() -> int:
     ap = argparse.ArgumentParser()
@@ -30,20 +32,12 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=3, help="builds a size (the median is reported)")
     ap.add_argument("--steps", type=int, default=2, help="steps before the builds (at least 2)")
     ap.add_argument("--top", type=int, default=0, help="also the last build's N functions of most own time")
-    ap.add_argument("--emulate-cuda", action="store_true",
-                    help="on the CPU arch: every sim_core arch query answers cuda (the CUDA paths, emulated)")
+    add_emulation_flag(ap)
     args = ap.parse_args()
-    if args.emulate_cuda and args.arch != "cpu":
-        ap.error("--emulate-cuda emulates the CUDA paths on the CPU arch: --arch cpu")
+    init_arch(ap, args)
     from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun
-    from sim_core.ti_backend import init_backend
 
     backend = ARCH_BACKENDS[args.arch]
-    init_backend(args.arch)
-    if args.emulate_cuda:
-        from emulated_cuda import gpu_sum_cells  # (benchmarks/, the script's folder)
-
-        gpu_sum_cells()
     # every kernel compiled or loaded first, the projected Hessian's too (as bench batch): no kernel's per-process
     # preparation inside the timed steps
     from sim_core.kernel_compile import compile_kernels
