@@ -374,18 +374,25 @@ class ContactSet:
 
             self._lists = ("sweep", SweepCandidates(self.surface_vertices, self.triangles, self.edges, self.filter,
                                                     self.rest_exclusion, search, self._vertex_triangle_bodies()))
-        return self._lists[1]
+        found = self._lists[1]
+        found.vt_allowed = self._vertex_triangle_bodies()  # (the setting may have changed since: the same table if not)
+        return found
 
     def _vertex_triangle_bodies(self) -> np.ndarray:
-        """The vertex-triangle search's body table ``(bodies, bodies)`` bool, ``[vertex's body, triangle's body]``:
+        """The vertex-triangle search's body table ``(bodies, bodies)``, ``[vertex's body, triangle's body]``:
         the filter's, without a sheet's vertices against a solid's triangles unless
         :class:`~sim_core.model.ContactSettings` ``sheet_vertices_vs_solids`` (the pairs
         :func:`~sim_core.energies.contact.pair_lists.sheet_vertices_off_solids` leaves out: a triangle's body is its
-        first vertex's, as there)."""
-        allowed = np.array(self.filter.body_pair_allowed, dtype=bool)
-        if not self.model.contact.sheet_vertices_vs_solids:
-            allowed &= ~np.outer(self.body_kind == "sheet", self.body_kind == "solid")
-        return allowed
+        first vertex's, as there), as C-contiguous int32; kept per value of the setting (the same array while it
+        holds: the kernels' device copy is sent once)."""
+        on = bool(self.model.contact.sheet_vertices_vs_solids)
+        kept = getattr(self, "_vt_bodies", None)
+        if kept is None or kept[0] != on:
+            allowed = np.array(self.filter.body_pair_allowed, dtype=bool)
+            if not on:
+                allowed &= ~np.outer(self.body_kind == "sheet", self.body_kind == "solid")
+            kept = self._vt_bodies = (on, np.ascontiguousarray(allowed, dtype=np.int32))
+        return kept[1]
 
     def _search_position(self, x: np.ndarray, segment_start: np.ndarray | None = None) -> np.ndarray:
         """Where to search for the candidates of ``x`` ``(n, 3)`` (m): a new array

@@ -187,7 +187,7 @@ def test_every_broad_phase_gives_the_same_contact_lists_on_the_taichi_path(ti_cp
     default), the sweep and the k-d trees give the same sorted lists over successive searches; the sheet's vertices
     against the gel's triangles left out inside the hash and sweep kernels (their vertex-triangle body table) equal
     the k-d trees' lists filtered on the host (``sheet_vertices_off_solids``), and are there with
-    ``sheet_vertices_vs_solids`` on."""
+    ``sheet_vertices_vs_solids`` on; the setting changed between searches is followed."""
     from sim_core.contact_set import ContactSet
     from tests.sim_core.test_contact_set import _forming_model_deformed
 
@@ -196,7 +196,8 @@ def test_every_broad_phase_gives_the_same_contact_lists_on_the_taichi_path(ti_cp
     sets = {name: ContactSet(model, broad_phase=name, backend="taichi-cpu") for name in ("spatial_hash", "sweep", "kdtree")}
     sheet_vertex, solid_triangle = sets["kdtree"]._sheet_vertex, sets["kdtree"]._solid_triangle
     rng = np.random.default_rng(seed)
-    for _ in range(3):
+    for on in (sheet_vs_solid, sheet_vs_solid, not sheet_vs_solid):
+        model.contact.sheet_vertices_vs_solids = on
         lists = {name: cs._candidate_pairs(x)[1:] for name, cs in sets.items()}
         for name in ("spatial_hash", "sweep"):
             np.testing.assert_array_equal(lists[name][0], lists["kdtree"][0])
@@ -204,7 +205,7 @@ def test_every_broad_phase_gives_the_same_contact_lists_on_the_taichi_path(ti_cp
         assert len(lists["kdtree"][0]) > 50 and len(lists["kdtree"][1]) > 50
         vt = lists["kdtree"][0]
         sheet_on_solid = np.count_nonzero(sheet_vertex[vt[:, 0]] & solid_triangle[vt[:, 1]])
-        assert (sheet_on_solid > 0) if sheet_vs_solid else (sheet_on_solid == 0)
+        assert (sheet_on_solid > 0) if on else (sheet_on_solid == 0)
         x = x + rng.normal(scale=1e-3, size=x.shape)  # beyond margin / 2: searched again
     from sim_core.ti_kernels.hash_candidates import HashCandidates
 
