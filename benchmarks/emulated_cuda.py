@@ -13,6 +13,25 @@ from __future__ import annotations
 import sys
 
 
+def add_emulation_flag(ap) -> None:
+    """A benchmark script's ``--emulate-cuda`` flag (``argparse`` parser ``ap``; :func:`init_arch` checks it)."""
+    ap.add_argument("--emulate-cuda", action="store_true",
+                    help="on the CPU arch: every sim_core arch query answers cuda (the CUDA paths, emulated)")
+
+
+def init_arch(ap, args, kernel_profiler: bool = False) -> None:
+    """Refuse ``--emulate-cuda`` off the CPU arch (``ap.error``), initialise the Taichi backend of ``args.arch`` and,
+    emulating, give the sums a GPU's cells (:func:`gpu_sum_cells`; :func:`answer_cuda` comes after the kernels'
+    compilation run)."""
+    if args.emulate_cuda and args.arch != "cpu":
+        ap.error("--emulate-cuda emulates the CUDA paths on the CPU arch: --arch cpu")
+    from sim_core.ti_backend import init_backend
+
+    init_backend(args.arch, kernel_profiler=kernel_profiler)
+    if args.emulate_cuda:
+        gpu_sum_cells()
+
+
 def gpu_sum_cells() -> None:
     """The summing kernels' sum arrays with a GPU's ``SUM_CELLS`` cells (before the first sum is made), and the byte
     copies' own arch query kept on the CPU arch (:func:`answer_cuda` leaves it)."""

@@ -40,6 +40,8 @@ import pstats
 import sys
 import time
 
+from emulated_cuda import add_emulation_flag, init_arch  # (benchmarks/, the script's folder)
+
 
 def main() -> int:
     ap = argparse.ArgumentParser()
@@ -56,20 +58,12 @@ def main() -> int:
                     help="Forming: each phase's synchronous copies by call site (this many sim_core frames)")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
-    ap.add_argument("--emulate-cuda", action="store_true",
-                    help="on the CPU arch: every sim_core arch query answers cuda (the CUDA paths, emulated)")
+    add_emulation_flag(ap)
     args = ap.parse_args()
-    if args.emulate_cuda and args.arch != "cpu":
-        ap.error("--emulate-cuda emulates the CUDA paths on the CPU arch: --arch cpu")
-    from sim_core.ti_backend import init_backend
+    init_arch(ap, args, kernel_profiler=args.kernel_profiler)
     from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun, _TaskRun
 
     backend = ARCH_BACKENDS[args.arch]
-    init_backend(args.arch, kernel_profiler=args.kernel_profiler)
-    if args.emulate_cuda:
-        from emulated_cuda import gpu_sum_cells  # (benchmarks/, the script's folder)
-
-        gpu_sum_cells()
 
     extra = {"linear_solver": args.linear_solver} if args.linear_solver else {}
     import sim_core.solver_config as sc

@@ -300,20 +300,22 @@ class ContactSet:
         rest = self.rest_exclusion if self.rest_exclusion.pair_filter is self.filter else None
         lists = self._candidate_lists(search) if rest is not None else None
         keys = [None, None]  # the lists' packed keys when the search's sort made them (CandidateVertices.keys)
-        if lists is not None:  # the exclusions inside the hash / sweep kernel, same lists
+        device_vertices = None  # their int32 vertices where the search's sort left the keys (on CUDA)
+        if lists is not None:  # the exclusions and the sheet-vs-solid filter inside the hash / sweep kernel, same lists
             vt, ee = lists.vertex_triangle(x_search, self.radius), lists.edge_edge(x_search, self.radius)
             keys_of = getattr(lists, "keys_of", None)
             if keys_of is not None:
                 keys = [keys_of(vt), keys_of(ee)]
+                device_vertices = lists.device_vertices(vt, ee)
         else:
             vt = vertex_triangle_candidates(x_search, self.surface_vertices, self.triangles, self.radius,
                                             self.filter, grouped_search=search, rest_exclusion=rest)
             ee = edge_edge_candidates(x_search, self.edges, self.radius, self.filter, grouped_search=search,
                                       rest_exclusion=rest)
-        if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
-            vt, keys[0] = sheet_vertices_off_solids(vt, keys[0], self._sheet_vertex, self._solid_triangle)
+            if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
+                vt, keys[0] = sheet_vertices_off_solids(vt, keys[0], self._sheet_vertex, self._solid_triangle)
         self._candidates = (x_search, vt, ee)
-        self._list_keys = (vt, ee, tuple(keys))
+        self._list_keys = (vt, ee, tuple(keys), device_vertices)
         return self._candidates
 
     def _without_held_pairs(self, candidates: tuple, x: np.ndarray, memory: CollisionMemory) -> tuple:
@@ -352,7 +354,9 @@ class ContactSet:
         """On the Taichi backend, the candidate lists of this contact set's elements with the
         exclusions in the kernel (made on first use): :class:`sim_core.ti_kernels.hash_candidates.HashCandidates`
         (``spatial_hash``) or :class:`sim_core.ti_kernels.sweep_candidates.SweepCandidates` on
-        ``search`` (``sweep``); None otherwise (NumPy backend, ``kdtree``)."""
+        ``search`` (``sweep``); None otherwise (NumPy backend, ``kdtree``). The vertex-triangle search takes
+        :meth:`_vertex_triangle_bodies` (a sheet's vertices off the solids' triangles in the kernel: the lists of
+        :func:`~sim_core.energies.contact.pair_lists.sheet_vertices_off_solids`, no host pass)."""
         if not self.taichi or self.broad_phase == "kdtree":
             return None
         lists = getattr(self, "_lists", None)
@@ -362,14 +366,33 @@ class ContactSet:
                 from sim_core.ti_kernels.hash_candidates import HashCandidates
 
                 self._lists = ("spatial_hash", HashCandidates(self.surface_vertices, self.triangles, self.edges,
-                                                              self.filter, self.rest_exclusion))
+                                                              self.filter, self.rest_exclusion,
+                                                              self._vertex_triangle_bodies()))
         elif lists is None or lists[0] != "sweep" or lists[1].search is not search:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.ti_kernels.sweep_candidates import SweepCandidates
 
             self._lists = ("sweep", SweepCandidates(self.surface_vertices, self.triangles, self.edges, self.filter,
-                                                    self.rest_exclusion, search))
-        return self._lists[1]
+                                                    self.rest_exclusion, search, self._vertex_triangle_bodies()))
+        found = self._lists[1]
+        found.vt_allowed = self._vertex_triangle_bodies()  # (the setting may have changed since: the same table if not)
+        return found
+
+    def _vertex_triangle_bodies(self) -> np.ndarray:
+        """The vertex-triangle search's body table ``(bodies, bodies)``, ``[vertex's body, triangle's body]``:
+        the filter's, without a sheet's vertices against a solid's triangles unless
+        :class:`~sim_core.model.ContactSettings` ``sheet_vertices_vs_solids`` (the pairs
+        :func:`~sim_core.energies.contact.pair_lists.sheet_vertices_off_solids` leaves out: a triangle's body is its
+        first vertex's, as there), as C-contiguous int32; kept per value of the setting (the same array while it
+        holds: the kernels' device copy is sent once)."""
+        on = bool(self.model.contact.sheet_vertices_vs_solids)
+        kept = getattr(self, "_vt_bodies", None)
+        if kept is None or kept[0] != on:
+            allowed = np.array(self.filter.body_pair_allowed, dtype=bool)
+            if not on:
+                allowed &= ~np.outer(self.body_kind == "sheet", self.body_kind == "solid")
+            kept = self._vt_bodies = (on, np.ascontiguousarray(allowed, dtype=np.int32))
+        return kept[1]
 
     def _search_position(self, x: np.ndarray, segment_start: np.ndarray | None = None) -> np.ndarray:
         """Where to search for the candidates of ``x`` ``(n, 3)`` (m): a new array
@@ -488,7 +511,7 @@ class ContactSet:
         from sim_core.energies.contact.setup_kernel import pair_geometry as geometry
 
         if lists is not None:
-            return geometry(x, *lists.int32_vertices(), device=lists.device)
+            return geometry(x, *lists.index_arrays(), device=lists.device)
         return geometry(x, vt_vertices, ee_vertices)
 
     def _pair_vertices(self, vt: np.ndarray, ee: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -513,11 +536,11 @@ class ContactSet:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.energies.contact.sides_kernel import side_codes
 
-            return side_codes(x, *lists.int32_vertices(), self.min_edge_sine, lists.device, self._held_positions(x))
+            return side_codes(x, *lists.index_arrays(), self.min_edge_sine, lists.device, self._held_positions(x))
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.energies.contact.setup_kernel import pair_codes
 
-        return pair_codes(x, *lists.int32_vertices(), self.min_edge_sine, lists.device, self._held_positions(x))
+        return pair_codes(x, *lists.index_arrays(), self.min_edge_sine, lists.device, self._held_positions(x))
 
     def _held_positions(self, x: np.ndarray):
         """``x`` ``(n, 3)`` where the solver's terms hold it on the device (a float64 Taichi ndarray,
@@ -658,10 +681,12 @@ class ContactSet:
         step's potentials)."""
         kept = getattr(self, "_vertices_kept", None)
         if kept is None or not kept.of(vt, ee):
-            known = getattr(self, "_list_keys", None)  # the keys of the search's lists (the same arrays)
-            keys = known[2] if known is not None and known[0] is vt and known[1] is ee else (None, None)
-            kept = self._vertices_kept = CandidateVertices(vt, ee, self.triangles, self.edges, keys=keys,
-                                                           vertex_count=self.model.vertex_count, pool=self._pool)
+            known = getattr(self, "_list_keys", None)  # the search's keys and device vertices (the same arrays)
+            same = known is not None and known[0] is vt and known[1] is ee
+            kept = self._vertices_kept = CandidateVertices(vt, ee, self.triangles, self.edges,
+                                                           keys=known[2] if same else (None, None),
+                                                           vertex_count=self.model.vertex_count, pool=self._pool,
+                                                           device_vertices=known[3] if same else None)
         return kept
 
     def _without_released(self, pairs: np.ndarray, sides: np.ndarray, kind: int) -> np.ndarray:

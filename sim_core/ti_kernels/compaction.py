@@ -91,7 +91,8 @@ def compact_on_device(first: np.ndarray, second: np.ndarray, size: int, device: 
 
     Args:
         first, second: C-contiguous int32 index arrays ``(p, m)`` and ``(q, m)`` (the same ``m``), values in
-            ``[0, size)``, never changed in place (on CUDA their device copies are kept in ``device``).
+            ``[0, size)``, never changed in place (on CUDA their device copies are kept in ``device``), or Taichi int32
+            ndarrays of that shape (read where they are).
         size: the bound of the indices (a model's vertex count), ``< 2**31``.
         device: the cache of the index arrays' device copies (:func:`~sim_core.ti_kernels.buffers.on_device`; a
             candidate list's, where the geometry's launch keeps them), or None for one of this call's own.
@@ -109,10 +110,12 @@ def compact_on_device(first: np.ndarray, second: np.ndarray, size: int, device: 
     """
     require_backend("compact_on_device")
     for part in (first, second):
-        if part.dtype != np.int32 or part.ndim != 2 or not part.flags.c_contiguous or part.shape[1] != first.shape[1]:
+        good = part.dtype == np.int32 and part.ndim == 2 and part.flags.c_contiguous \
+            if isinstance(part, np.ndarray) else part.dtype == ti.i32 and len(part.shape) == 2
+        if not good or part.shape[1] != first.shape[1]:
             raise ValueError(f"compact_on_device: indices must be C-contiguous int32 (k, m) of one m, got "
-                             f"{part.dtype} {part.shape}")
-    p, q, m = len(first), len(second), first.shape[1]
+                             f"{part.dtype} {tuple(part.shape)}")
+    p, q, m = first.shape[0], second.shape[0], first.shape[1]
     if not p + q or not m:
         return np.zeros(0, dtype=np.int64), np.zeros((p + q, m), dtype=np.int32)
     size = int(size)
@@ -121,12 +124,13 @@ def compact_on_device(first: np.ndarray, second: np.ndarray, size: int, device: 
     chunk_total = _ARRAYS.rows("chunk_total", -(-size // SCAN_CHUNK), (), np.int32)
     count = _ARRAYS.rows("count", 2, (), np.int32)
     stand_in = _ARRAYS.rows(f"empty_{m}", 1, (m,), np.int32)  # a part without rows (the kernel reads none)
-    parts = [on_device(device, name, part) if len(part) else on_device(_ARRAYS.device(), f"empty_{m}", stand_in)
+    parts = [part if not isinstance(part, np.ndarray)  # (a Taichi ndarray: where the candidate search gathered it)
+             else on_device(device, name, part) if len(part) else on_device(_ARRAYS.device(), f"empty_{m}", stand_in)
              for name, part in zip(names, (first, second))]
     scratch = _ARRAYS.device()
     work = [on_device(scratch, name, host, scratch=True)
             for name, host in (("position", position), ("chunk_total", chunk_total), ("own", own), ("count", count))]
-    on_gpu = not isinstance(parts[0], np.ndarray)  # (on_device's answer: device copies on CUDA only)
+    on_gpu = not isinstance(parts[0], np.ndarray)  # (device copies or given ndarrays: on CUDA only)
     local = new_ndarray(ti.i32, (p + q, m)) if on_gpu else np.empty((p + q, m), dtype=np.int32)
     _compact_kernel(parts[0], p, parts[1], q, size, *work, local)
     copy_back(count, work[3])

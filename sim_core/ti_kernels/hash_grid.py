@@ -334,13 +334,14 @@ def _pairs_of(keys: np.ndarray, pool: ArrayPool | None) -> np.ndarray:
 
 
 def sorted_on_device(out, found: int, first_count: int, device: dict, pool: ArrayPool | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
+                     ) -> tuple[np.ndarray, np.ndarray, object]:
     """:func:`sorted_pairs_and_keys` of the rows ``out[:found]`` where ``out`` is (int32 ``(capacity, 2)``, distinct
     rows, first column in ``[0, first_count)``: a Taichi ndarray in device memory on CUDA, else a NumPy array), sorted
     there by one launch of :func:`_sort_pairs`; only the sorted keys are copied back (the host sort of a 1024-copy
     Forming batch's 1.8 million keys took 43 ms on an H100's host: docs/benchmarks_log.md, session 45, 28grad). The
-    same arrays. ``device``: the cache of the kernel's work arrays (:func:`~sim_core.ti_kernels.buffers.on_device`);
-    ``pool``: as :func:`sorted_pairs_and_keys`'."""
+    same arrays, and the sorted keys where the launch wrote them (a Taichi int64 ndarray of at least ``found`` entries,
+    the cache's: valid until the next sort with the same ``device``). ``device``: the cache of the kernel's work arrays
+    (:func:`~sim_core.ti_kernels.buffers.on_device`); ``pool``: as :func:`sorted_pairs_and_keys`'."""
     arrays = device.setdefault("sort_host", {})
     starts = arrays.get("start")
     if starts is None or starts.shape[0] < first_count + 1:
@@ -354,7 +355,7 @@ def sorted_on_device(out, found: int, first_count: int, device: dict, pool: Arra
     _sort_pairs(out, int(found), int(first_count), *work)
     kept = copy_back(arrays["keys"], work[3], found)[:found]
     keys = kept.copy() if pool is None else pool.copy_of("keys", kept)
-    return _pairs_of(keys, pool), keys
+    return _pairs_of(keys, pool), keys, work[3]
 
 
 def _power_of_two(n: int) -> int:
@@ -372,7 +373,7 @@ class HashGrid:
     contact set's two grids, searched in turn, do not re-bind each other's arrays at every launch.
     On CUDA the grid keeps them in device memory instead (:meth:`_on_device`), sorts the pairs there
     (:func:`sorted_on_device`) and copies back only the pair count and the sorted keys (the scale the kernel computes
-    stays there).
+    stays there; the sorted keys too until its next search, :meth:`device_keys_of`).
 
     Args:
         cell_scale: the factor of the cell size's mean-width term (:func:`_hash_pairs`).
@@ -461,12 +462,14 @@ class HashGrid:
             if found > self.out.shape[0]:
                 self.out = np.empty((found + found // 4, 2), dtype=np.int32)
                 continue
+            device_keys = None
             if on_gpu:
                 first_count = a_vertices.shape[0] if same else self._first_count(a_key)
-                pairs, keys = sorted_on_device(arrays[16], found, first_count, self.__dict__["_device"], self._pool)
+                pairs, keys, device_keys = sorted_on_device(arrays[16], found, first_count, self.__dict__["_device"],
+                                                            self._pool)
             else:
                 pairs, keys = sorted_pairs_and_keys(self.out[:found], self._pool)
-            self._last = (pairs, keys)
+            self._last = (pairs, keys, device_keys)
             return pairs
 
     def _first_count(self, a_key: np.ndarray) -> int:
@@ -482,6 +485,13 @@ class HashGrid:
         the last :meth:`pairs` returned (the same object), made by its sort; else None."""
         last = self._last
         return last[1] if last is not None and last[0] is pairs else None
+
+    def device_keys_of(self, pairs: np.ndarray):
+        """:meth:`keys_of` where the sort left them on CUDA (a Taichi int64 ndarray whose first ``len(pairs)`` entries
+        are the keys, valid until this grid's next search) when ``pairs`` is the array the last :meth:`pairs` returned
+        and it was sorted there; else None."""
+        last = self._last
+        return last[2] if last is not None and last[0] is pairs else None
 
     def _on_device(self, arrays: tuple) -> tuple:
         """The launch's arrays (the order of :func:`_hash_pairs`' array arguments) as Taichi ndarrays in device

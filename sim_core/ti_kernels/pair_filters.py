@@ -44,13 +44,18 @@ class CandidateElements:
         pair_filter: the body / self-contact filter; needs ``body_pair_allowed``.
         rest_exclusion: the filter's :class:`RestExclusion` built for these same arrays.
 
+        vt_allowed: the body table of the vertex-triangle search, ``(bodies, bodies)`` bool, entry ``[vertex's body,
+            triangle's body]`` (not symmetric: e.g. a sheet's vertices off a solid's triangles, the contact set's
+            ``sheet_vertices_vs_solids`` off), or None for the filter's ``body_pair_allowed``; the edge-edge search
+            takes the filter's.
+
     Raises:
-        ConfigError: no body-pair table in the filter, or a rest exclusion of another filter (the
-            message names the subclass).
+        ConfigError: no body-pair table in the filter, a rest exclusion of another filter, or a ``vt_allowed`` of
+            another shape (the message names the subclass).
     """
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray, pair_filter: PairFilter,
-                 rest_exclusion: RestExclusion) -> None:
+                 rest_exclusion: RestExclusion, vt_allowed: np.ndarray | None = None) -> None:
         who = type(self).__name__
         if pair_filter.body_pair_allowed is None:
             raise ConfigError(f"{who}: the pair filter needs a body_pair_allowed table")
@@ -61,6 +66,10 @@ class CandidateElements:
         self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
         self.edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
         self.allowed = np.ascontiguousarray(pair_filter.body_pair_allowed, dtype=np.int32)
+        if vt_allowed is not None and np.shape(vt_allowed) != self.allowed.shape:
+            raise ConfigError(f"{who}: a vertex-triangle body table of shape {np.shape(vt_allowed)} for "
+                              f"{self.allowed.shape[0]} bodies")
+        self.vt_allowed = self.allowed if vt_allowed is None else np.ascontiguousarray(vt_allowed, dtype=np.int32)
         self._vertex_body = body[self.vertices].astype(np.int32)
         self._triangle_body = body[self.triangles[:, 0]].astype(np.int32)
         self._edge_body = body[self.edges[:, 0]].astype(np.int32)

@@ -123,14 +123,16 @@ class SweepCandidates(CandidateElements):
         pair_filter: the body / self-contact filter; needs ``body_pair_allowed``.
         rest_exclusion: the filter's :class:`RestExclusion` built for these same arrays.
         search: the :class:`SweepSearch` whose plans (and kept sweep axes) are used.
+        vt_allowed: the vertex-triangle search's body table (:class:`CandidateElements`), or None.
 
     Raises:
-        ConfigError: no body-pair table in the filter, or a rest exclusion of another filter.
+        ConfigError: no body-pair table in the filter, a rest exclusion of another filter, or a ``vt_allowed`` of
+            another shape.
     """
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray, pair_filter: PairFilter,
-                 rest_exclusion: RestExclusion, search: SweepSearch) -> None:
-        super().__init__(vertices, triangles, edges, pair_filter, rest_exclusion)
+                 rest_exclusion: RestExclusion, search: SweepSearch, vt_allowed: np.ndarray | None = None) -> None:
+        super().__init__(vertices, triangles, edges, pair_filter, rest_exclusion, vt_allowed)
         self.search = search
 
     def vertex_triangle(self, x: np.ndarray, radius: float) -> np.ndarray:
@@ -144,7 +146,7 @@ class SweepCandidates(CandidateElements):
         t_max = np.maximum(np.maximum(tri_x[:, 0], tri_x[:, 1]), tri_x[:, 2])
         p = x[self.vertices]
         return self._run(p, p, self._vertex_body, t_min, t_max, self._triangle_body, self._vertex_elements,
-                         self._vertex_keys, self._triangle_elements, self._vt_rest, radius)
+                         self._vertex_keys, self._triangle_elements, self._vt_rest, radius, self.vt_allowed)
 
     def edge_edge(self, x: np.ndarray, radius: float) -> np.ndarray:
         """``[edge row i, edge row j]`` pairs (``i < j``) within ``radius`` (m) at ``x`` ``(n, 3)`` (m),
@@ -155,15 +157,15 @@ class SweepCandidates(CandidateElements):
         ex = x[self.edges]
         e_min, e_max = np.minimum(ex[:, 0], ex[:, 1]), np.maximum(ex[:, 0], ex[:, 1])
         return self._run(e_min, e_max, self._edge_body, None, None, None, self._edge_elements, self._edge_keys,
-                         self._edge_elements, self._ee_rest, radius)
+                         self._edge_elements, self._ee_rest, radius, self.allowed)
 
     def _axes(self, a_lo: np.ndarray, a_hi: np.ndarray, a_body: np.ndarray, b_lo: np.ndarray, b_hi: np.ndarray,
-              b_body: np.ndarray, same: bool, radius: float) -> np.ndarray:
+              b_body: np.ndarray, same: bool, radius: float, allowed: np.ndarray) -> np.ndarray:
         """The sweep axis of each body of B, int32 ``(bodies,)``: kept from the last search of the kind
         and chosen again every ``refresh``-th one, as the axis along which the boxes of A that may
         touch the body leave the fewest of its boxes to scan."""
         search = self.search
-        bodies = self.allowed.shape[0]
+        bodies = allowed.shape[0]
         kind = ("lists", same, len(a_lo), len(b_lo))
         axes, uses = search.axes.get(kind, (None, 0))
         if axes is not None and uses < search.refresh:
@@ -172,7 +174,7 @@ class SweepCandidates(CandidateElements):
         axes = np.zeros(bodies, dtype=np.int32)
         for kb in range(bodies):
             rows = np.flatnonzero(b_body == kb)
-            scanners = self.allowed[a_body, kb] != 0
+            scanners = allowed[a_body, kb] != 0
             if same:
                 scanners &= a_body <= kb
             if not rows.size or not np.any(scanners):
@@ -191,7 +193,7 @@ class SweepCandidates(CandidateElements):
         return axes
 
     def _run(self, a_lo, a_hi, a_body, b_lo, b_hi, b_body, a_elements: np.ndarray, a_keys: np.ndarray,
-             b_elements: np.ndarray, rest_keys: np.ndarray, radius: float) -> np.ndarray:
+             b_elements: np.ndarray, rest_keys: np.ndarray, radius: float, allowed: np.ndarray) -> np.ndarray:
         same = b_lo is None
         a_lo, a_hi = np.ascontiguousarray(a_lo, dtype=np.float64), np.ascontiguousarray(a_hi, dtype=np.float64)
         if same:
@@ -201,8 +203,8 @@ class SweepCandidates(CandidateElements):
         if a_lo.shape[0] == 0 or b_lo.shape[0] == 0:
             return np.zeros((0, 2), dtype=np.int64)
         require_backend("sweep candidate kernel")
-        bodies = self.allowed.shape[0]
-        body_axis = self._axes(a_lo, a_hi, a_body, b_lo, b_hi, b_body, same, radius)
+        bodies = allowed.shape[0]
+        body_axis = self._axes(a_lo, a_hi, a_body, b_lo, b_hi, b_body, same, radius, allowed)
         rows = np.arange(b_lo.shape[0])
         box_axis = body_axis[b_body]
         order = np.lexsort((b_lo[rows, box_axis], b_body))
@@ -224,7 +226,7 @@ class SweepCandidates(CandidateElements):
         count = np.zeros(1, dtype=np.int32)
         while True:
             _sweep_candidates(a_lo, a_hi, a_body, position, a_elements, a_keys, sorted_lo, sorted_hi, sorted_body,
-                              order, b_elements, segment, width, slack, body_lo, body_hi, body_axis, self.allowed,
+                              order, b_elements, segment, width, slack, body_lo, body_hi, body_axis, allowed,
                               float(radius), int(same), rest_keys, out, count)
             found = int(count[0])
             if found <= out.shape[0]:

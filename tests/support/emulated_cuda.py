@@ -25,7 +25,8 @@ def emulate_cuda(monkeypatch) -> None:
             importlib.import_module(info.name)
     from sim_core.ti_kernels import device_copy
 
+    query = ti_backend.current_arch  # (taken before the loop changes ti_backend's own)
     for name, module in list(sys.modules.items()):
         if name.startswith("sim_core") and module is not device_copy \
-                and getattr(module, "current_arch", None) is ti_backend.current_arch:
+                and getattr(module, "current_arch", None) is query:
             monkeypatch.setattr(module, "current_arch", lambda: "cuda")

@@ -54,6 +54,10 @@ class CandidateVertices:
         pool: where the vertex arrays are made (:class:`~sim_core.array_pool.ArrayPool`: the blocks of earlier lists
             that nothing holds any more, written again; a contact set's; for int64 lists and elements), or None: fresh
             arrays. The same values.
+        device_vertices: the lists' int32 vertices ``(p, 4)`` and ``(q, 4)`` already in device memory (Taichi
+            ndarrays, None for an empty list: the candidate search gathered them where its sort left the keys,
+            :meth:`~sim_core.ti_kernels.hash_candidates.HashCandidates.device_vertices`), or None; the kernels then
+            read them there (:meth:`index_arrays`) instead of :meth:`int32_vertices` sent from the host.
 
     Raises:
         IndexError: a triangle or edge row out of range.
@@ -61,8 +65,10 @@ class CandidateVertices:
 
     def __init__(self, vt: np.ndarray, ee: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
                  keys: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
-                 vertex_count: int | None = None, pool: ArrayPool | None = None) -> None:
+                 vertex_count: int | None = None, pool: ArrayPool | None = None,
+                 device_vertices: tuple | None = None) -> None:
         self.vt, self.ee = vt, ee
+        self._device_vertices = device_vertices
         self._pool = pool
         if pool is None or not all(a.dtype == np.int64 for a in (vt, ee, triangles, edges)):
             self.vt_vertices = vertex_triangle_vertices(vt, triangles)
@@ -90,6 +96,15 @@ class CandidateVertices:
                 self._int32 = tuple(self._pool.copy_of(name, v, np.int32)
                                     for name, v in (("vt_int32", self.vt_vertices), ("ee_int32", self.ee_vertices)))
         return self._int32
+
+    def index_arrays(self) -> tuple[object, object]:
+        """The lists' int32 vertices ``(p, 4)``, ``(q, 4)`` where the kernels read them: the device arrays the search
+        gathered (``device_vertices``; a host :meth:`int32_vertices` array stands for an empty list), else
+        :meth:`int32_vertices` (sent once per list through :attr:`device` on CUDA). The same values."""
+        given = self._device_vertices
+        if given is None:
+            return self.int32_vertices()
+        return tuple(g if g is not None else np.zeros((0, 4), dtype=np.int32) for g in given)
 
     def keys(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """The lists' pairs as packed keys ``first << 32 | second``, int64 ``(p,)`` and ``(q,)``
@@ -126,7 +141,7 @@ class CandidateVertices:
             if current_arch() == "cuda":
                 from sim_core.ti_kernels.compaction import compact_on_device
 
-                return compact_on_device(*self.int32_vertices(), self._vertex_count, self.device, DEVICE_INDEX_NAMES)
+                return compact_on_device(*self.index_arrays(), self._vertex_count, self.device, DEVICE_INDEX_NAMES)
         return compact_indices((self.vt_vertices, self.ee_vertices), dtype=np.int32, size=self._vertex_count)
 
 

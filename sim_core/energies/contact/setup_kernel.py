@@ -164,14 +164,20 @@ def _kept_indices(name: str, vertices: np.ndarray) -> np.ndarray:
     return kept
 
 
-def _int32_rows(vertices: np.ndarray) -> np.ndarray:
-    """``vertices`` itself, checked to be a C-contiguous int32 array ``(k, 4)``.
+def _int32_rows(vertices, where: str = "pair_geometry"):
+    """``vertices`` itself, checked to be a C-contiguous int32 array ``(k, 4)`` or a Taichi int32 ndarray ``(k, 4)``
+    (a candidate list's vertices gathered on the device:
+    :meth:`~sim_core.energies.contact.pair_lists.CandidateVertices.index_arrays`, read there by the launch).
 
     Raises:
-        ValueError: another dtype, shape or layout."""
-    if vertices.dtype != np.int32 or vertices.ndim != 2 or vertices.shape[1] != 4 or not vertices.flags.c_contiguous:
-        raise ValueError(f"pair_geometry: kept indices must be C-contiguous int32 (k, 4), got {vertices.dtype} "
-                         f"{vertices.shape}")
+        ValueError: another dtype, shape or layout (the message names ``where``)."""
+    if isinstance(vertices, np.ndarray):
+        good = vertices.dtype == np.int32 and vertices.ndim == 2 and vertices.flags.c_contiguous
+    else:
+        good = vertices.dtype == ti.i32 and len(vertices.shape) == 2
+    if not good or vertices.shape[1] != 4:
+        raise ValueError(f"{where}: indices must be C-contiguous int32 (k, 4), got {vertices.dtype} "
+                         f"{tuple(vertices.shape)}")
     return vertices
 
 
@@ -195,10 +201,10 @@ def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarra
         ConfigError: the Taichi backend is not initialised.
     """
     require_backend("contact set-up kernels")
-    p, q = len(vt_vertices), len(ee_vertices)
+    p, q = vt_vertices.shape[0], ee_vertices.shape[0]
     indices, constant = [], {}
     for position, name, given in ((1, DEVICE_INDEX_NAMES[0], vt_vertices), (3, DEVICE_INDEX_NAMES[1], ee_vertices)):
-        if device is not None and len(given):  # the given array itself (an empty one: a kept array)
+        if device is not None and given.shape[0]:  # the given array itself (an empty one: a kept array)
             indices.append(_int32_rows(given))
             constant[position] = (device, name)
         else:
@@ -226,11 +232,11 @@ def pair_codes(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray, 
         ValueError: indices that are not C-contiguous int32 ``(k, 4)``.
     """
     require_backend("contact set-up kernels")
-    p, q = len(vt_vertices), len(ee_vertices)
+    p, q = vt_vertices.shape[0], ee_vertices.shape[0]
     indices, constant = [], {}
     for position, name, given in ((1, DEVICE_INDEX_NAMES[0], vt_vertices), (3, DEVICE_INDEX_NAMES[1], ee_vertices)):
-        if len(given):
-            indices.append(_int32_rows(given))
+        if given.shape[0]:
+            indices.append(_int32_rows(given, "pair_codes"))
             constant[position] = (device, name)
         else:
             indices.append(_kept_indices(name, given))

@@ -31,7 +31,7 @@ import numpy as np
 
 from sim_core.collision.pair_geometry import ListGeometry
 from sim_core.energies.contact.pair_lists import DEVICE_INDEX_NAMES
-from sim_core.energies.contact.setup_kernel import (_device_launch, _edge_edge_measures, _kept_indices,
+from sim_core.energies.contact.setup_kernel import (_device_launch, _edge_edge_measures, _int32_rows, _kept_indices,
                                                     _positions_or_held, _vertex_triangle_code)
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import device_copy, linalg
@@ -169,7 +169,9 @@ def side_codes(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray, 
     Args:
         x: positions ``(n, 3)`` (m).
         vt_vertices, ee_vertices: the lists' int32 vertices ``(p, 4)`` and ``(q, 4)``, C-contiguous, never changed in
-            place (:meth:`~sim_core.energies.contact.pair_lists.CandidateVertices.int32_vertices`).
+            place (:meth:`~sim_core.energies.contact.pair_lists.CandidateVertices.int32_vertices`), or Taichi int32
+            ndarrays where the search gathered them (:meth:`~sim_core.energies.contact.pair_lists.CandidateVertices.
+            index_arrays`: read there).
         min_sine: the edge-edge pairs' least sine (kept above it).
         device: the lists' device cache (:attr:`~sim_core.energies.contact.pair_lists.CandidateVertices.device`),
             where the int32 vertices are kept under :data:`~sim_core.energies.contact.pair_lists.DEVICE_INDEX_NAMES`.
@@ -180,17 +182,14 @@ def side_codes(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray, 
         ValueError: indices that are not C-contiguous int32 ``(k, 4)``.
     """
     require_backend("side_codes")
-    p, q = len(vt_vertices), len(ee_vertices)
+    p, q = vt_vertices.shape[0], ee_vertices.shape[0]
     codes = np.empty(2 * (p + q), dtype=np.int8)
     if not p + q:
         return SideCodes(codes, None, p)
     indices, constant = [], {}
     for position, name, given in ((1, DEVICE_INDEX_NAMES[0], vt_vertices), (3, DEVICE_INDEX_NAMES[1], ee_vertices)):
-        if len(given):
-            if given.dtype != np.int32 or given.ndim != 2 or given.shape[1] != 4 or not given.flags.c_contiguous:
-                raise ValueError(f"side_codes: indices must be C-contiguous int32 (k, 4), got {given.dtype} "
-                                 f"{given.shape}")
-            indices.append(given)
+        if given.shape[0]:
+            indices.append(_int32_rows(given, "side_codes"))
             constant[position] = (device, name)
         else:
             indices.append(_kept_indices(f"sides_{name}", given))

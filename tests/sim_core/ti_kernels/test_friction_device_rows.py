@@ -149,7 +149,8 @@ def test_contact_set_builds_the_friction_rows_on_the_device_path(ti_cpu, monkeyp
 @pytest.mark.skipif(TEST_ARCH != "cpu", reason=EMULATED_ONLY)
 def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkeypatch):
     """Three Forming copies stepped in lockstep on CUDA's paths (emulated on the CPU arch; the envelope solver, each
-    step's friction from device rows, none of its host arrays read): copies 0 and 2 end every step where their
+    step's friction from device rows, none of its host arrays read; the candidate lists' vertices gathered where the
+    search's sort left their keys): copies 0 and 2 end every step where their
     separate runs (CPU arch, host friction rows) end, to the solver's tolerance; copy 1, started from a non-finite
     velocity, fails alone at its first step and keeps its last good state."""
     import copy
@@ -160,6 +161,7 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
     from sim_core.solver_config import SolverConfig
 
     from sim_core.bench.batch import _FormingRun
+    from sim_core.ti_kernels.hash_candidates import HashCandidates
 
     steps = 3
     run = _FormingRun(3, steps, "taichi-cpu", lockstep=True, linear_solver="envelope")
@@ -176,6 +178,9 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
     built = []
     original = device_rows.friction_on_device
     monkeypatch.setattr(device_rows, "friction_on_device", lambda *a: built.append(original(*a)) or built[-1])
+    gathered = []
+    gather = HashCandidates.device_vertices
+    monkeypatch.setattr(HashCandidates, "device_vertices", lambda *a: gathered.append(gather(*a)) or gathered[-1])
     emulate_cuda(monkeypatch)
     tol = SolverConfig().tol_velocity * 0.005
     for k in range(steps):
@@ -184,5 +189,6 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
         for i, ref in zip((0, 2), separate):
             assert np.max(np.abs(run.batch.states[i].x - ref[k].x)) <= tol, (i, k)
     assert len(built) >= steps and all(f._host is None for f in built)  # (step 0 again without copy 1)
+    assert gathered and all(g is not None for g in gathered)
     assert list(run.batch.active) == [True, False, True] and "non-finite" in run.batch.failures[1]
     np.testing.assert_array_equal(run.batch.states[1].x, start.x)

@@ -93,7 +93,7 @@ def test_lists_equal_the_reference_lists(ti_cpu, seed):
 def test_the_search_keeps_the_sorted_keys_of_its_lists_and_the_contact_set_takes_them(ti_cpu):
     """``HashCandidates.keys_of``: the packed keys ``first << 32 | second`` of the lists its last searches returned
     (made by the sort: increasing, equal to the keys made from the pairs again), None for any other array; the
-    contact set's candidate lists take them (the vertex-triangle keys through the sheet-vs-solid filter's rows):
+    contact set's candidate lists take them (both lists: the sheet-vs-solid filter is inside the kernel):
     :meth:`CandidateVertices.keys` equal the keys made from the lists."""
     from sim_core.contact_set import ContactSet
     from sim_core.energies.contact.pair_lists import _sorted_keys
@@ -112,12 +112,11 @@ def test_the_search_keeps_the_sorted_keys_of_its_lists_and_the_contact_set_takes
     _, vt, ee = cs._candidate_pairs(x)
     search = cs._candidate_lists(None)
     assert len(vt) > 50 and len(ee) > 50
-    np.testing.assert_array_equal(search.keys_of(ee), _sorted_keys(ee))
+    for pairs in (vt, ee):
+        np.testing.assert_array_equal(search.keys_of(pairs), _sorted_keys(pairs))
     assert search.keys_of(ee.copy()) is None
-    if not model.contact.sheet_vertices_vs_solids:  # the filtered list is a new array: keys taken by its rows
-        assert search.keys_of(vt) is None
     lists = cs._list_vertices(vt, ee)
-    assert lists.keys()[1] is search.keys_of(ee)
+    assert lists.keys()[0] is search.keys_of(vt) and lists.keys()[1] is search.keys_of(ee)
     for pairs, k in zip((vt, ee), lists.keys()):
         np.testing.assert_array_equal(k, _sorted_keys(pairs))
 
@@ -182,22 +181,31 @@ def test_the_kernel_is_compiled_with_the_step_kernels(ti_cpu, monkeypatch):
     assert calls == [1]
 
 
-@pytest.mark.parametrize("seed", range(2))
-def test_every_broad_phase_gives_the_same_contact_lists_on_the_taichi_path(ti_cpu, seed):
+@pytest.mark.parametrize("seed, sheet_vs_solid", [(0, False), (1, False), (0, True)])
+def test_every_broad_phase_gives_the_same_contact_lists_on_the_taichi_path(ti_cpu, seed, sheet_vs_solid):
     """Forming's sheet + gel + table model, deformed, on the Taichi backend: the hash kernel (the
-    default), the sweep and the k-d trees give the same sorted lists over successive searches."""
+    default), the sweep and the k-d trees give the same sorted lists over successive searches; the sheet's vertices
+    against the gel's triangles left out inside the hash and sweep kernels (their vertex-triangle body table) equal
+    the k-d trees' lists filtered on the host (``sheet_vertices_off_solids``), and are there with
+    ``sheet_vertices_vs_solids`` on; the setting changed between searches is followed."""
     from sim_core.contact_set import ContactSet
     from tests.sim_core.test_contact_set import _forming_model_deformed
 
     model, x = _forming_model_deformed(seed)
+    model.contact.sheet_vertices_vs_solids = sheet_vs_solid
     sets = {name: ContactSet(model, broad_phase=name, backend="taichi-cpu") for name in ("spatial_hash", "sweep", "kdtree")}
+    sheet_vertex, solid_triangle = sets["kdtree"]._sheet_vertex, sets["kdtree"]._solid_triangle
     rng = np.random.default_rng(seed)
-    for _ in range(3):
+    for on in (sheet_vs_solid, sheet_vs_solid, not sheet_vs_solid):
+        model.contact.sheet_vertices_vs_solids = on
         lists = {name: cs._candidate_pairs(x)[1:] for name, cs in sets.items()}
         for name in ("spatial_hash", "sweep"):
             np.testing.assert_array_equal(lists[name][0], lists["kdtree"][0])
             np.testing.assert_array_equal(lists[name][1], lists["kdtree"][1])
         assert len(lists["kdtree"][0]) > 50 and len(lists["kdtree"][1]) > 50
+        vt = lists["kdtree"][0]
+        sheet_on_solid = np.count_nonzero(sheet_vertex[vt[:, 0]] & solid_triangle[vt[:, 1]])
+        assert (sheet_on_solid > 0) if on else (sheet_on_solid == 0)
         x = x + rng.normal(scale=1e-3, size=x.shape)  # beyond margin / 2: searched again
     from sim_core.ti_kernels.hash_candidates import HashCandidates
 

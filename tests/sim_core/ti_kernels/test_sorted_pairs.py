@@ -44,12 +44,15 @@ def test_the_device_sort_equals_the_hosts(ti_cpu, on_device, seed, count, first_
     cache: dict = {}
     want_pairs, want_keys = sorted_pairs_and_keys(rows[:found])
     for given in (out, out[:found + 2]):  # a second sort with the same (kept) work arrays
-        pairs, keys = sorted_on_device(_ndarray(given) if on_device else given, found, first_count, cache)
+        pairs, keys, device_keys = sorted_on_device(_ndarray(given) if on_device else given, found, first_count,
+                                                    cache)
         assert pairs.dtype == keys.dtype == np.int64
         np.testing.assert_array_equal(pairs, want_pairs)
         np.testing.assert_array_equal(keys, want_keys)
+        np.testing.assert_array_equal(np.asarray(device_keys if isinstance(device_keys, np.ndarray)
+                                                 else device_keys.to_numpy())[:found], want_keys)
     assert np.all(np.diff(keys) > 0)
-    pairs, keys = sorted_on_device(_ndarray(out) if on_device else out, 0, first_count, cache)
+    pairs, keys, _ = sorted_on_device(_ndarray(out) if on_device else out, 0, first_count, cache)
     assert pairs.shape == (0, 2) and keys.shape == (0,)
 
 

@@ -160,9 +160,14 @@ def test_forming_contact_set_with_the_launchs_sides_equals_the_hosts(ti_cpu, mon
     """Forming's contact set (pressed, two steps, a new search at a trial point, remembered sides from the first step)
     with the lists' int8 codes and the sides placed from them (the end of a step's codes serving the next one's start):
     the same pairs, sides, pair energies, gradients and distances, and the same memory, as with the host's sides, bit
-    for bit; on CUDA (emulated) the pair batch reads the placed device sides."""
+    for bit; on CUDA (emulated) the pair batch reads the placed device sides, and the lists' int32 vertices are
+    gathered where the search's sort left the keys (equal to the host's gather of every pair, which is never made
+    for the kernels)."""
     from sim_core.energies.contact.batch_kernel import PairBatch
     from sim_core.energies.contact import sides_kernel
+    from sim_core.energies.contact.pair_lists import CandidateVertices
+    from sim_core.energies.contact.reference import edge_edge_vertices, vertex_triangle_vertices
+    from sim_core.ti_kernels.hash_candidates import HashCandidates
 
     host = _forming_run(False, monkeypatch)
     if emulated:
@@ -173,9 +178,21 @@ def test_forming_contact_set_with_the_launchs_sides_equals_the_hosts(ti_cpu, mon
     batches = []
     made = PairBatch.__init__
     monkeypatch.setattr(PairBatch, "__init__", lambda self, *a, **k: (batches.append(k), made(self, *a, **k))[1])
+    gathered, host_int32 = [], []
+    gather = HashCandidates.device_vertices
+    monkeypatch.setattr(HashCandidates, "device_vertices", lambda self, vt, ee: (
+        lambda got: (gathered.append((self, vt, ee, got)), got)[1])(gather(self, vt, ee)))
+    int32 = CandidateVertices.int32_vertices
+    monkeypatch.setattr(CandidateVertices, "int32_vertices", lambda self: (host_int32.append(self), int32(self))[1])
     device = _forming_run(True, monkeypatch)
     # the sides placed on the device at each step's start and for the trial point's new lists (only there on CUDA)
     assert len(launches) >= 3 if emulated else not launches
+    assert len(gathered) >= 2 and all((got is not None) == emulated for *_, got in gathered)
+    assert not host_int32 if emulated else host_int32
+    for search, vt, ee, got in gathered if emulated else ():
+        assert len(vt) and len(ee)
+        np.testing.assert_array_equal(got[0].to_numpy(), vertex_triangle_vertices(vt, search.triangles))
+        np.testing.assert_array_equal(got[1].to_numpy(), edge_edge_vertices(ee, search.edges))
     given = [k.get("device_sides") is not None for k in batches]
     assert all(given) if emulated else not any(given)
     assert len(host) == len(device)
