@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 
-from sim_core.energies import green_strain, hinge_bending, membrane, neohookean, nodal_pressure
+from sim_core.energies import green_strain, hinge_bending, membrane, modified_stvk, neohookean, nodal_pressure
 from sim_core.energies.membrane import StVKMembrane
 from sim_core.energies.neohookean import StableNeoHookean
 from sim_core.errors import ConfigError
@@ -20,7 +20,7 @@ ELASTIC_BACKENDS: tuple[str, ...] = ("numpy", "taichi")
 
 ELASTIC_KINDS: dict[str, tuple[tuple[str, str], tuple[str, str]]] = {
     **membrane.ELASTIC_KINDS, **hinge_bending.ELASTIC_KINDS, **neohookean.ELASTIC_KINDS,
-    **nodal_pressure.ELASTIC_KINDS, **green_strain.ELASTIC_KINDS}
+    **nodal_pressure.ELASTIC_KINDS, **green_strain.ELASTIC_KINDS, **modified_stvk.ELASTIC_KINDS}
 """Elastic potential kind -> (NumPy class, Taichi class) as (module, name)."""
 
 

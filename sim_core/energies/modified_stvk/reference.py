@@ -1,0 +1,150 @@
+"""The modified Saint Venant-Kirchhoff solid: Green-strain shear with a volumetric energy in ``ln J``.
+
+Per linear tet, with ``F`` the deformation gradient, ``J = det F`` and ``E = (F^T F - I) / 2`` the Green-Lagrange
+strain::
+
+    psi(F) = mu tr(E^2) + lam / 2 (ln J)^2,        S = 2 mu E + lam ln(J) C^-1,        P = F S = 2 mu F E + lam ln(J) F^-T,
+
+``mu``, ``lam`` the small-strain Lamé parameters of ``E``, ``nu`` (the "modified Kirchhoff material" of Belytschko,
+Liu and Moran, Nonlinear Finite Elements for Continua and Structures, 2000, sec. 5.4.3; Saint Venant-Kirchhoff,
+Ogden 1984 sec. 4.4, with its volumetric term ``lam / 2 tr(E)^2`` written in ``J``). At small strain
+``E -> eps`` and ``ln J -> tr eps``: linear elasticity with ``E``, ``nu``, as both other gel laws.
+
+Why this law for a soft, nearly incompressible silicone (nu 0.45-0.49): its bulk response is a function of the
+volume ratio ``J`` alone, as a rubber's is (Flory's split; Ogden sec. 7.2), while Saint Venant-Kirchhoff's
+``lam tr(E)`` also answers a change of shape at constant volume. That difference decides the pressed gel's slide:
+
+- Simple shear ``gamma`` of a layer keeps ``J = 1`` and has ``tr E = gamma^2 / 2``. Saint Venant-Kirchhoff's normal
+  stress on the layer at fixed thickness is ``(mu + lam / 2) gamma^2`` (tensile: the layer pulls the indenter in;
+  ``lam / mu = 9`` at nu 0.45, so 5.5 mu gamma^2), which makes a pad's normal force fall when it slides
+  (:mod:`sim_core.energies.green_strain`). Here ``ln J = 0`` and the normal stress is the shear term's alone,
+  ``S_zz = mu gamma^2``: the same sign, 1 / (1 + lam / (2 mu)) of it (0.18 at nu 0.45, 0.04 at nu 0.49). The
+  prediction for a pressed, sliding pad at constant depth is therefore a normal force that falls by no more than a
+  fifth of the Green-strain law's fall, i.e. nearly the pressed value, as linear elasticity's normal-tangential
+  coupling ((1 - 2 nu) / (2 (1 - nu)) = 0.09 at nu 0.45, zero when incompressible; Johnson, Contact Mechanics,
+  1985, sec. 7.1) says it should at small strain.
+- In compression the energy grows without bound as ``J -> 0`` (``(ln J)^2``), so no tet inverts; uniaxially
+  (``F = diag(l, 1, 1)``) ``dP/dl = mu (3 l^2 - 1) + lam (1 - ln l) / l^2 >= lam - mu > 0`` for every ``l`` in
+  ``(0, 1]`` when ``lam > mu`` (nu > 1/4): the stress rises monotonically to infinity, where Saint Venant-
+  Kirchhoff's peaks at ``l = 1/sqrt 3`` and falls to zero (the collapse at a sliding pad's leading edge).
+
+Derivatives (row-major ``vec F``, index ``3 i + j``; ``G = F^-T``, ``dG_ij / dF_ab = -G_ib G_aj``)::
+
+    dP_ij / dF_ab = delta_ia S'_bj + mu ((F F^T)_ia delta_jb + F_ib F_aj) + lam (G_ij G_ab - ln(J) G_ib G_aj),
+
+with ``S' = 2 mu E``: a symmetric 9x9 per tet, mapped by ``dF/dx`` to 12x12 vertex blocks; the PSD projection clamps
+(or flips) the 9x9's negative eigenvalues per tet (:func:`sim_core.energies.base.project_psd`). A tet with
+``J <= 0`` has infinite energy (the line search steps back from it) and a NaN gradient (the solver's divergence
+error names the step).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.energies.base import BorrowedWorkspace, HessianBlocks, Projection, project_psd
+from sim_core.energies.green_strain.reference import _linear_lame_derivatives, linear_lame_parameters
+from sim_core.energies.neohookean.reference import StableNeoHookean
+
+
+class ModifiedStVKSolid(BorrowedWorkspace):
+    """Modified Saint Venant-Kirchhoff energy of a set of linear tetrahedra (module docstring).
+
+    Args:
+        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`StableNeoHookean`'s (tets ``(k, 4)``, rest
+            positions ``(n, 3)`` m, small-strain ``E`` in Pa and ``nu``), and raising as it does.
+
+    Attributes:
+        per_tet: the Stable Neo-Hookean of the same ``E``, ``nu`` on the same tets, whose ``dF/dx``, rest volumes
+            and deformation memo this reads (and the gel's Maxwell branch takes).
+        mu, lam: the small-strain Lamé parameters in Pa.
+    """
+
+    parameter_names: tuple[str, ...] = ("youngs_modulus", "poisson_ratio")
+    _host = "per_tet"
+
+    def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
+        self.per_tet = StableNeoHookean(tets, x_rest, youngs_modulus, poisson_ratio)  # validates E, nu, the mesh
+        self.youngs_modulus, self.poisson_ratio = self.per_tet.youngs_modulus, self.per_tet.poisson_ratio
+        self.mu, self.lam = linear_lame_parameters(self.youngs_modulus, self.poisson_ratio)
+        self.tets, self.tet_rest_volume = self.per_tet.tets, self.per_tet.tet_rest_volume
+
+    @property
+    def tet_dFdx(self) -> np.ndarray:
+        """``dF/dx`` per tet, ``(k, 4, 3)`` in 1/m (the per-tet Stable Neo-Hookean's)."""
+        return self.per_tet.tet_dFdx
+
+    def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``F`` per tet at ``x`` ``(n, 3)``, shape ``(k, 3, 3)`` (the gel candidates' relaxed states read it)."""
+        return self.per_tet.deformation_gradient(x)
+
+    def _kinematics(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(F, E, ln J, F^-T)`` per tet at ``x`` ``(n, 3)``: shapes ``(k, 3, 3)``, ``(k, 3, 3)``, ``(k,)``,
+        ``(k, 3, 3)``; ``ln J`` and ``F^-T`` are NaN where ``J <= 0``."""
+        F = self.per_tet._deformation(np.asarray(x, dtype=float))
+        E = 0.5 * (np.matmul(np.swapaxes(F, 1, 2), F) - np.eye(3))
+        J = np.linalg.det(F)
+        inverted = J <= 0.0
+        log_J = np.log(np.where(inverted, 1.0, J))
+        log_J[inverted] = np.nan
+        safe = np.where(inverted[:, None, None], np.eye(3), F)
+        G = np.swapaxes(np.linalg.inv(safe), 1, 2)
+        G[inverted] = np.nan
+        return F, E, log_J, G
+
+    @staticmethod
+    def _pk1(F: np.ndarray, E: np.ndarray, log_J: np.ndarray, G: np.ndarray, mu: float, lam: float) -> np.ndarray:
+        """``P = 2 mu F E + lam ln(J) F^-T`` in Pa, ``(k, 3, 3)``."""
+        return 2.0 * mu * np.matmul(F, E) + lam * log_J[:, None, None] * G
+
+    def d2psi_dF2(self, x: np.ndarray) -> np.ndarray:
+        """The exact 9x9 ``d2psi/dF2`` per tet at ``x`` (module docstring), ``(k, 9, 9)`` in Pa."""
+        F, E, log_J, G = self._kinematics(x)
+        k = F.shape[0]
+        eye = np.eye(3)
+        A = np.einsum("ia,kbj->kijab", eye, 2.0 * self.mu * E)
+        A += self.mu * np.einsum("kia,jb->kijab", np.matmul(F, np.swapaxes(F, 1, 2)), eye)
+        A += self.mu * np.einsum("kib,kaj->kijab", F, F)
+        A += self.lam * np.einsum("kij,kab->kijab", G, G)
+        A -= self.lam * log_J[:, None, None, None, None] * np.einsum("kib,kaj->kijab", G, G)
+        return A.reshape(k, 9, 9)
+
+    # ------------------------------------------------------------------ Potential contract
+    def energy(self, x: np.ndarray) -> float:
+        """``sum_t V_t (mu tr(E_t^2) + lam / 2 (ln J_t)^2)`` in J at ``x`` ``(n, 3)`` (0 at rest; ``inf`` where a tet
+        has ``J <= 0``)."""
+        _, E, log_J, _ = self._kinematics(x)
+        if np.isnan(log_J).any():
+            return float("inf")
+        psi = self.mu * np.einsum("kij,kij->k", E, E) + 0.5 * self.lam * log_J**2
+        return float(np.dot(self.tet_rest_volume, psi))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N, shape ``(n, 3)``: ``V_t P(F_t) dF/dx`` summed per vertex (NaN at a tet's vertices where
+        ``J <= 0``)."""
+        x = np.asarray(x, dtype=float)
+        return self.per_tet._forces_from_pk1(x, self._pk1(*self._kinematics(x), self.mu, self.lam))
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Per-tet 12x12 blocks in N/m: ``V_t (dF/dx)^T A (dF/dx)`` with ``A`` the 9x9 ``d2psi/dF2`` exact
+        (``"none"``) or with its negative eigenvalues clamped / flipped (``"clamp"`` / ``"abs"``).
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        A = project_psd(self.d2psi_dF2(x), projection)
+        M = self.per_tet.tet_dvecF_dx
+        H = np.matmul(np.swapaxes(M, 1, 2), np.matmul(A, M)) * self.tet_rest_volume[:, None, None]
+        return HessianBlocks(self.tets, H)
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        """d(dE/dx)/dp for ``p`` in :attr:`parameter_names`, shape ``(n, 3)`` (``P`` is linear in ``mu``, ``lam``).
+
+        Raises:
+            KeyError: unknown parameter name.
+        """
+        if name not in self.parameter_names:
+            raise KeyError(f"ModifiedStVKSolid has no parameter {name!r}; known: {self.parameter_names}")
+        x = np.asarray(x, dtype=float)
+        dmu, dlam = _linear_lame_derivatives(self.youngs_modulus, self.poisson_ratio, name)
+        return self.per_tet._forces_from_pk1(x, self._pk1(*self._kinematics(x), dmu, dlam))
