@@ -47,11 +47,12 @@ LIMIT_STRETCH = 1.0 / np.sqrt(3.0)
 """StVK's stretch of largest compressive stress (uniaxial: ``d/dl [l (l^2 - 1)] = 0``)."""
 
 
-def deep_press_slide(gel_element: str, resolution: tuple[int, int, int]) -> dict[str, np.ndarray]:
-    """The card scene's deep press-slide replayed to the end of its first slide with the given gel law and mesh.
+def deep_press_slide(gel_element: str, resolution: tuple[int, int, int], steps: int = SLID) -> dict[str, np.ndarray]:
+    """The card scene's deep press-slide replayed to the end of its first slide (or its first ``steps`` steps) with
+    the given gel law and mesh.
 
     Returns:
-        per step 1..SLID: ``stiffness`` ``F_z / mean marker sink`` (N/m; sink along the sensor's -z, the markers'
+        per step 1..``steps``: ``stiffness`` ``F_z / mean marker sink`` (N/m; sink along the sensor's -z, the markers'
         mean), ``force`` ``|F_z|`` (N), ``stretch`` the smallest principal stretch of the gel's tets (``F = D_s
         D_m^-1``'s smallest singular value).
     """
@@ -65,7 +66,7 @@ def deep_press_slide(gel_element: str, resolution: tuple[int, int, int]) -> dict
     rest = sim.model.x_rest
     inverse_rest = np.linalg.inv(np.stack([rest[tets[:, i]] - rest[tets[:, 0]] for i in (1, 2, 3)], axis=-1))
     markers0 = sim.observe().tactile["tactile"].markers_xyz[:, 2].copy()
-    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), DEEP_PRESS_SLIDE)[:SLID]
+    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), DEEP_PRESS_SLIDE)[:steps]
     out = {"stiffness": [], "force": [], "stretch": []}
     for target in targets:
         sim.step(Control({"ee": target}))

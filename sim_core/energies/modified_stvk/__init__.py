@@ -18,4 +18,8 @@ ELASTIC_KINDS: dict[str, tuple[tuple[str, str], tuple[str, str]]] = {
 """Elastic potential kind -> (NumPy class, Taichi class), each as (module, name): the registration read by
 :func:`sim_core.energies.registry.make_elastic_potential` (the NumPy class on both backends)."""
 
-__all__ = ['ModifiedStVKSolid', 'ELASTIC_KINDS']
+FUSED_KERNELS: dict[tuple[str, str], tuple[str, str]] = {}
+"""Potential class -> fused part class: none yet (the registration read by :data:`sim_core.fused_elastic.FUSED_KERNELS`;
+the reference part evaluates this law)."""
+
+__all__ = ['ModifiedStVKSolid', 'ELASTIC_KINDS', 'FUSED_KERNELS']
