@@ -3,7 +3,7 @@
 Per linear tet, with ``F`` the deformation gradient, ``J = det F`` and ``E = (F^T F - I) / 2`` the Green-Lagrange
 strain::
 
-    psi(F) = mu tr(E^2) + lam / 2 (ln J)^2,        S = 2 mu E + lam ln(J) C^-1,        P = F S = 2 mu F E + lam ln(J) F^-T,
+    psi(F) = mu tr(E^2) + lam / 2 (ln J)^2,     S = 2 mu E + lam ln(J) C^-1,     P = 2 mu F E + lam ln(J) F^-T,
 
 ``mu``, ``lam`` the small-strain Lamé parameters of ``E``, ``nu`` (the "modified Kirchhoff material" of Belytschko,
 Liu and Moran, Nonlinear Finite Elements for Continua and Structures, 2000, sec. 5.4.3; Saint Venant-Kirchhoff,
@@ -11,18 +11,20 @@ Ogden 1984 sec. 4.4, with its volumetric term ``lam / 2 tr(E)^2`` written in ``J
 ``E -> eps`` and ``ln J -> tr eps``: linear elasticity with ``E``, ``nu``, as both other gel laws.
 
 Why this law for a soft, nearly incompressible silicone (nu 0.45-0.49): its bulk response is a function of the
-volume ratio ``J`` alone, as a rubber's is (Flory's split; Ogden sec. 7.2), while Saint Venant-Kirchhoff's
-``lam tr(E)`` also answers a change of shape at constant volume. That difference decides the pressed gel's slide:
+volume ratio ``J`` alone, as an elastomer's is (the volumetric-isochoric split of rubber elasticity; Ogden sec. 7.2),
+while Saint Venant-Kirchhoff's ``lam tr(E)`` also answers a change of shape at constant volume; the shear response
+is Saint Venant-Kirchhoff's Green-strain term, unchanged. That difference decides the pressed gel's slide:
 
 - Simple shear ``gamma`` of a layer keeps ``J = 1`` and has ``tr E = gamma^2 / 2``. Saint Venant-Kirchhoff's normal
   stress on the layer at fixed thickness is ``(mu + lam / 2) gamma^2`` (tensile: the layer pulls the indenter in;
   ``lam / mu = 9`` at nu 0.45, so 5.5 mu gamma^2), which makes a pad's normal force fall when it slides
   (:mod:`sim_core.energies.green_strain`). Here ``ln J = 0`` and the normal stress is the shear term's alone,
-  ``S_zz = mu gamma^2``: the same sign, 1 / (1 + lam / (2 mu)) of it (0.18 at nu 0.45, 0.04 at nu 0.49). The
-  prediction for a pressed, sliding pad at constant depth is therefore a normal force that falls by no more than a
-  fifth of the Green-strain law's fall, i.e. nearly the pressed value, as linear elasticity's normal-tangential
-  coupling ((1 - 2 nu) / (2 (1 - nu)) = 0.09 at nu 0.45, zero when incompressible; Johnson, Contact Mechanics,
-  1985, sec. 7.1) says it should at small strain.
+  ``S_zz = mu gamma^2``: the same sign, 1 / (1 + lam / (2 mu)) of it (0.18 at nu 0.45, 0.04 at nu 0.49); a
+  compressible neo-Hookean solid's is 0, Stable Neo-Hookean's 0.015 of StVK's, and a rubber's is small and of
+  either sign (the Poynting effect). The prediction for a pressed pad sliding at constant depth: the normal force
+  lies between the Stable Neo-Hookean gel's and the Green-strain gel's, 0.18 of the way from the first towards the
+  second, i.e. near the pressed value, as linear elasticity's normal-tangential coupling ((1 - 2 nu) / (2 (1 - nu))
+  = 0.09 at nu 0.45, zero when incompressible; Johnson, Contact Mechanics, 1985, sec. 7.1) has it at small strain.
 - In compression the energy grows without bound as ``J -> 0`` (``(ln J)^2``), so no tet inverts; uniaxially
   (``F = diag(l, 1, 1)``) ``dP/dl = mu (3 l^2 - 1) + lam (1 - ln l) / l^2 >= lam - mu > 0`` for every ``l`` in
   ``(0, 1]`` when ``lam > mu`` (nu > 1/4): the stress rises monotonically to infinity, where Saint Venant-
