@@ -50,8 +50,11 @@ def _linear_lame_derivatives(youngs_modulus: float, poisson_ratio: float, name: 
     return -E / (2.0 * (1.0 + nu) ** 2), E * (1.0 + 2.0 * nu**2) / ((1.0 + nu) * (1.0 - 2.0 * nu)) ** 2
 
 
-class GreenStrainSolid(BorrowedWorkspace):
-    """Saint Venant-Kirchhoff energy of a set of linear tetrahedra (module docstring).
+class GreenStrainTets(BorrowedWorkspace):
+    """What the Green-strain solids share: a set of linear tetrahedra hosted by the Stable Neo-Hookean of the same
+    ``E``, ``nu`` (``dF/dx``, rest volumes, deformation memo), the small-strain Lamé parameters, the Green strain and
+    the Hessian of the shear term ``mu tr(E^2)`` (:class:`GreenStrainSolid`,
+    :class:`sim_core.energies.modified_stvk.ModifiedStVKSolid`). Not a potential itself.
 
     Args:
         tets, x_rest, youngs_modulus, poisson_ratio: as :class:`StableNeoHookean`'s (tets ``(k, 4)``, rest
@@ -77,11 +80,36 @@ class GreenStrainSolid(BorrowedWorkspace):
         """``dF/dx`` per tet, ``(k, 4, 3)`` in 1/m (the per-tet Stable Neo-Hookean's: the fused kernel reads it)."""
         return self.per_tet.tet_dFdx
 
+    def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``F`` per tet at ``x`` ``(n, 3)``, shape ``(k, 3, 3)`` (the gel candidates' relaxed states read it)."""
+        return self.per_tet.deformation_gradient(x)
+
     def _strain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(F, E, tr E)`` per tet at ``x`` ``(n, 3)``: shapes ``(k, 3, 3)``, ``(k, 3, 3)``, ``(k,)``."""
         F = self.per_tet._deformation(np.asarray(x, dtype=float))
         E = 0.5 * (np.matmul(np.swapaxes(F, 1, 2), F) - np.eye(3))
         return F, E, np.trace(E, axis1=1, axis2=2)
+
+    def _shear_d2psi_dF2(self, F: np.ndarray, E: np.ndarray) -> np.ndarray:
+        """``d2/dF2`` of ``mu tr(E^2)``, ``(k, 3, 3, 3, 3)`` in Pa (index ``[k, i, j, a, b]``)::
+
+            delta_ia (2 mu E)_bj + mu ((F F^T)_ia delta_jb + F_ib F_aj)."""
+        eye = np.eye(3)
+        A = np.einsum("ia,kbj->kijab", eye, 2.0 * self.mu * E)
+        A += self.mu * np.einsum("kia,jb->kijab", np.matmul(F, np.swapaxes(F, 1, 2)), eye)
+        A += self.mu * np.einsum("kib,kaj->kijab", F, F)
+        return A
+
+
+class GreenStrainSolid(GreenStrainTets):
+    """Saint Venant-Kirchhoff energy of a set of linear tetrahedra (module docstring).
+
+    Args:
+        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`GreenStrainTets` (and :class:`StableNeoHookean`).
+
+    Attributes:
+        per_tet, mu, lam: as :class:`GreenStrainTets`.
+    """
 
     @staticmethod
     def _pk1(F: np.ndarray, E: np.ndarray, trace: np.ndarray, mu: float, lam: float) -> np.ndarray:
@@ -91,18 +119,10 @@ class GreenStrainSolid(BorrowedWorkspace):
     def d2psi_dF2(self, x: np.ndarray) -> np.ndarray:
         """The exact 9x9 ``d2psi/dF2`` per tet at ``x`` (module docstring), ``(k, 9, 9)`` in Pa."""
         F, E, trace = self._strain(x)
-        k = F.shape[0]
-        S = 2.0 * self.mu * E + self.lam * trace[:, None, None] * np.eye(3)
-        eye = np.eye(3)
-        A = np.einsum("ia,kbj->kijab", eye, S)
-        A += self.mu * np.einsum("kia,jb->kijab", np.matmul(F, np.swapaxes(F, 1, 2)), eye)
-        A += self.mu * np.einsum("kib,kaj->kijab", F, F)
+        A = self._shear_d2psi_dF2(F, E)
+        A += np.einsum("ia,k,bj->kijab", np.eye(3), self.lam * trace, np.eye(3))
         A += self.lam * np.einsum("kij,kab->kijab", F, F)
-        return A.reshape(k, 9, 9)
-
-    def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
-        """``F`` per tet at ``x`` ``(n, 3)``, shape ``(k, 3, 3)`` (the gel candidates' relaxed states read it)."""
-        return self.per_tet.deformation_gradient(x)
+        return A.reshape(F.shape[0], 9, 9)
 
     # ------------------------------------------------------------------ Potential contract
     def energy(self, x: np.ndarray) -> float:

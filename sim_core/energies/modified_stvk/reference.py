@@ -44,17 +44,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_core.energies.base import BorrowedWorkspace, HessianBlocks, Projection, project_psd
-from sim_core.energies.green_strain.reference import _linear_lame_derivatives, linear_lame_parameters
-from sim_core.energies.neohookean.reference import StableNeoHookean
+from sim_core.energies.base import HessianBlocks, Projection, project_psd
+from sim_core.energies.green_strain.reference import GreenStrainTets, _linear_lame_derivatives
 
 
-class ModifiedStVKSolid(BorrowedWorkspace):
+class ModifiedStVKSolid(GreenStrainTets):
     """Modified Saint Venant-Kirchhoff energy of a set of linear tetrahedra (module docstring).
 
     Args:
-        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`StableNeoHookean`'s (tets ``(k, 4)``, rest
-            positions ``(n, 3)`` m, small-strain ``E`` in Pa and ``nu``), and raising as it does.
+        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`~sim_core.energies.green_strain.GreenStrainTets`
+            (tets ``(k, 4)``, rest positions ``(n, 3)`` m, small-strain ``E`` in Pa and ``nu``; raising as
+            :class:`~sim_core.energies.neohookean.StableNeoHookean` does).
 
     Attributes:
         per_tet: the Stable Neo-Hookean of the same ``E``, ``nu`` on the same tets, whose ``dF/dx``, rest volumes
@@ -62,29 +62,10 @@ class ModifiedStVKSolid(BorrowedWorkspace):
         mu, lam: the small-strain Lamé parameters in Pa.
     """
 
-    parameter_names: tuple[str, ...] = ("youngs_modulus", "poisson_ratio")
-    _host = "per_tet"
-
-    def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
-        self.per_tet = StableNeoHookean(tets, x_rest, youngs_modulus, poisson_ratio)  # validates E, nu, the mesh
-        self.youngs_modulus, self.poisson_ratio = self.per_tet.youngs_modulus, self.per_tet.poisson_ratio
-        self.mu, self.lam = linear_lame_parameters(self.youngs_modulus, self.poisson_ratio)
-        self.tets, self.tet_rest_volume = self.per_tet.tets, self.per_tet.tet_rest_volume
-
-    @property
-    def tet_dFdx(self) -> np.ndarray:
-        """``dF/dx`` per tet, ``(k, 4, 3)`` in 1/m (the per-tet Stable Neo-Hookean's)."""
-        return self.per_tet.tet_dFdx
-
-    def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
-        """``F`` per tet at ``x`` ``(n, 3)``, shape ``(k, 3, 3)`` (the gel candidates' relaxed states read it)."""
-        return self.per_tet.deformation_gradient(x)
-
     def _kinematics(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(F, E, ln J, F^-T)`` per tet at ``x`` ``(n, 3)``: shapes ``(k, 3, 3)``, ``(k, 3, 3)``, ``(k,)``,
         ``(k, 3, 3)``; ``ln J`` and ``F^-T`` are NaN where ``J <= 0``."""
-        F = self.per_tet._deformation(np.asarray(x, dtype=float))
-        E = 0.5 * (np.matmul(np.swapaxes(F, 1, 2), F) - np.eye(3))
+        F, E, _ = self._strain(x)
         J = np.linalg.det(F)
         inverted = J <= 0.0
         log_J = np.log(np.where(inverted, 1.0, J))
@@ -102,14 +83,10 @@ class ModifiedStVKSolid(BorrowedWorkspace):
     def d2psi_dF2(self, x: np.ndarray) -> np.ndarray:
         """The exact 9x9 ``d2psi/dF2`` per tet at ``x`` (module docstring), ``(k, 9, 9)`` in Pa."""
         F, E, log_J, G = self._kinematics(x)
-        k = F.shape[0]
-        eye = np.eye(3)
-        A = np.einsum("ia,kbj->kijab", eye, 2.0 * self.mu * E)
-        A += self.mu * np.einsum("kia,jb->kijab", np.matmul(F, np.swapaxes(F, 1, 2)), eye)
-        A += self.mu * np.einsum("kib,kaj->kijab", F, F)
+        A = self._shear_d2psi_dF2(F, E)
         A += self.lam * np.einsum("kij,kab->kijab", G, G)
         A -= self.lam * log_J[:, None, None, None, None] * np.einsum("kib,kaj->kijab", G, G)
-        return A.reshape(k, 9, 9)
+        return A.reshape(F.shape[0], 9, 9)
 
     # ------------------------------------------------------------------ Potential contract
     def energy(self, x: np.ndarray) -> float:
