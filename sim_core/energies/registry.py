@@ -31,8 +31,11 @@ def make_elastic_potential(kind: str, *args, backend: str = "numpy", **kwargs):
         kind: ``"stvk_membrane"`` (:class:`~sim_core.energies.membrane.StVKMembrane`),
             ``"discrete_shell_bending"`` (:class:`~sim_core.energies.hinge_bending.reference.DiscreteShellBending`)
             ``"stable_neohookean"`` (:class:`~sim_core.energies.neohookean.reference.StableNeoHookean`)
-            or ``"nodal_pressure_neohookean"``
-            (:class:`~sim_core.energies.nodal_pressure.reference.NodalPressureNeoHookean`, NumPy on both backends).
+            ``"nodal_pressure_neohookean"``
+            (:class:`~sim_core.energies.nodal_pressure.reference.NodalPressureNeoHookean`, NumPy on both backends),
+            ``"green_strain"`` (:class:`~sim_core.energies.green_strain.reference.GreenStrainSolid`) or
+            ``"modified_stvk"`` (:class:`~sim_core.energies.modified_stvk.reference.ModifiedStVKSolid`, NumPy on both
+            backends).
         *args, **kwargs: the constructor arguments of that class.
         backend: ``"numpy"`` (reference) or ``"taichi"`` (the Taichi subclass; the arch is the one
             given to :func:`sim_core.ti_backend.init_backend`).
