@@ -53,8 +53,9 @@ def _linear_lame_derivatives(youngs_modulus: float, poisson_ratio: float, name: 
 class GreenStrainTets(BorrowedWorkspace):
     """What the Green-strain solids share: a set of linear tetrahedra hosted by the Stable Neo-Hookean of the same
     ``E``, ``nu`` (``dF/dx``, rest volumes, deformation memo), the small-strain Lamé parameters, the Green strain and
-    the Hessian of the shear term ``mu tr(E^2)`` (:class:`GreenStrainSolid`,
-    :class:`sim_core.energies.modified_stvk.ModifiedStVKSolid`). Not a potential itself.
+    the Hessian of the shear term ``mu tr(E^2)``, and gradient, Hessian and parameter gradient from a law's ``_state``,
+    ``_pk1``, ``d2psi_dF2`` and ``exact_blocks`` (:class:`GreenStrainSolid`,
+    :class:`sim_core.energies.modified_stvk.ModifiedStVKSolid`). Not a potential itself (no energy).
 
     Args:
         tets, x_rest, youngs_modulus, poisson_ratio: as :class:`StableNeoHookean`'s (tets ``(k, 4)``, rest
@@ -101,6 +102,56 @@ class GreenStrainTets(BorrowedWorkspace):
         return A
 
 
+    def _shear_blocks(self, F: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """The 12x12 blocks (per unit rest volume) of ``mu tr(E^2)``'s curvature terms plus the stress term of the
+        second Piola-Kirchhoff stress ``S`` ``(k, 3, 3)``, shape ``(k, 4, 3, 4, 3)`` (``[k, a, c, b, d]``; ``g_a`` row
+        ``a`` of ``dF/dx``, ``F_c`` row ``c`` of ``F``, ``B = F F^T``)::
+
+            delta_cd g_a.S g_b + mu (g_a.g_b) B_cd + mu (g_b.F_c)(g_a.F_d)."""
+        G = self.per_tet.tet_dFdx
+        Gt = np.swapaxes(G, 1, 2)
+        GF = np.matmul(G, np.swapaxes(F, 1, 2))  # GF[k, a, c] = g_a . F_c
+        # H[k, a, c, b, d] by broadcasting, term by term as in the formula
+        H = self.mu * np.swapaxes(GF, 1, 2)[:, None, :, :, None] * GF[:, :, None, None, :]
+        H += (self.mu * np.matmul(G, Gt))[:, :, None, :, None] * np.matmul(F, np.swapaxes(F, 1, 2))[:, None, :, None, :]
+        H += np.matmul(np.matmul(G, S), Gt)[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
+        return H
+
+    # ------------------------------------------------------------------ Potential contract (the laws' shared part)
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N, shape ``(n, 3)``: ``V_t P(F_t) dF/dx`` summed per vertex (``P`` the law's ``_pk1`` of its
+        ``_state``)."""
+        x = np.asarray(x, dtype=float)
+        return self.per_tet._forces_from_pk1(x, self._pk1(*self._state(x), self.mu, self.lam))
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Per-tet 12x12 blocks in N/m: ``V_t (dF/dx)^T A (dF/dx)`` with ``A`` the law's 9x9 ``d2psi/dF2`` exact
+        (``"none"``: contracted in closed form, the law's ``exact_blocks``) or with its negative eigenvalues clamped /
+        flipped (``"clamp"`` / ``"abs"``).
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        if projection == "none":
+            return HessianBlocks(self.tets, self.exact_blocks(x))
+        A = project_psd(self.d2psi_dF2(x), projection)
+        M = self.per_tet.tet_dvecF_dx
+        H = np.matmul(np.swapaxes(M, 1, 2), np.matmul(A, M)) * self.tet_rest_volume[:, None, None]
+        return HessianBlocks(self.tets, H)
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        """d(dE/dx)/dp for ``p`` in :attr:`parameter_names`, shape ``(n, 3)`` (``P`` is linear in ``mu``, ``lam``).
+
+        Raises:
+            KeyError: unknown parameter name.
+        """
+        if name not in self.parameter_names:
+            raise KeyError(f"{type(self).__name__} has no parameter {name!r}; known: {self.parameter_names}")
+        x = np.asarray(x, dtype=float)
+        dmu, dlam = _linear_lame_derivatives(self.youngs_modulus, self.poisson_ratio, name)
+        return self.per_tet._forces_from_pk1(x, self._pk1(*self._state(x), dmu, dlam))
+
+
 class GreenStrainSolid(GreenStrainTets):
     """Saint Venant-Kirchhoff energy of a set of linear tetrahedra (module docstring).
 
@@ -110,6 +161,10 @@ class GreenStrainSolid(GreenStrainTets):
     Attributes:
         per_tet, mu, lam: as :class:`GreenStrainTets`.
     """
+
+    def _state(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(F, E, tr E)`` per tet at ``x`` (:meth:`GreenStrainTets._strain`): the arguments of :meth:`_pk1`."""
+        return self._strain(x)
 
     @staticmethod
     def _pk1(F: np.ndarray, E: np.ndarray, trace: np.ndarray, mu: float, lam: float) -> np.ndarray:
@@ -131,27 +186,6 @@ class GreenStrainSolid(GreenStrainTets):
         psi = self.mu * np.einsum("kij,kij->k", E, E) + 0.5 * self.lam * trace**2
         return float(np.dot(self.tet_rest_volume, psi))
 
-    def gradient(self, x: np.ndarray) -> np.ndarray:
-        """dE/dx in N, shape ``(n, 3)``: ``V_t P(F_t) dF/dx`` summed per vertex."""
-        x = np.asarray(x, dtype=float)
-        F, E, trace = self._strain(x)
-        return self.per_tet._forces_from_pk1(x, self._pk1(F, E, trace, self.mu, self.lam))
-
-    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
-        """Per-tet 12x12 blocks in N/m: ``V_t (dF/dx)^T A (dF/dx)`` with ``A`` the 9x9 ``d2psi/dF2`` exact
-        (``"none"``: contracted in closed form, :meth:`exact_blocks`) or with its negative eigenvalues clamped /
-        flipped (``"clamp"`` / ``"abs"``).
-
-        Raises:
-            ValueError: unknown projection.
-        """
-        if projection == "none":
-            return HessianBlocks(self.tets, self.exact_blocks(x))
-        A = project_psd(self.d2psi_dF2(x), projection)
-        M = self.per_tet.tet_dvecF_dx
-        H = np.matmul(np.swapaxes(M, 1, 2), np.matmul(A, M)) * self.tet_rest_volume[:, None, None]
-        return HessianBlocks(self.tets, H)
-
     def exact_blocks(self, x: np.ndarray) -> np.ndarray:
         """The exact 12x12 blocks ``V_t M^T (d2psi/dF2) M`` at ``x`` ``(n, 3)``, ``(k, 12, 12)`` in N/m, contracted by
         hand (``g_a`` row ``a`` of ``dF/dx``, ``F_c`` row ``c`` of ``F``, ``B = F F^T``; the module docstring's
@@ -162,27 +196,7 @@ class GreenStrainSolid(GreenStrainTets):
         the fused kernel's entries (:mod:`sim_core.energies.green_strain.fused_kernel`); a fifth of the cost of the
         9x9 product (the sensitivities' exact Hessian takes it every step)."""
         F, E, trace = self._strain(x)
-        G = self.per_tet.tet_dFdx
-        S = 2.0 * self.mu * E + self.lam * trace[:, None, None] * np.eye(3)
-        Gt = np.swapaxes(G, 1, 2)
-        GF = np.matmul(G, np.swapaxes(F, 1, 2))  # GF[k, a, c] = g_a . F_c
-        k = F.shape[0]
-        # H[k, a, c, b, d] by broadcasting, term by term as in the formula
-        H = self.lam * GF[:, :, :, None, None] * GF[:, None, None, :, :]
-        H += self.mu * np.swapaxes(GF, 1, 2)[:, None, :, :, None] * GF[:, :, None, None, :]
-        H += (self.mu * np.matmul(G, Gt))[:, :, None, :, None] * np.matmul(F, np.swapaxes(F, 1, 2))[:, None, :, None, :]
-        H += np.matmul(np.matmul(G, S), Gt)[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
-        return H.reshape(k, 12, 12) * self.tet_rest_volume[:, None, None]
-
-    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
-        """d(dE/dx)/dp for ``p`` in :attr:`parameter_names`, shape ``(n, 3)`` (``P`` is linear in ``mu``, ``lam``).
-
-        Raises:
-            KeyError: unknown parameter name.
-        """
-        if name not in self.parameter_names:
-            raise KeyError(f"GreenStrainSolid has no parameter {name!r}; known: {self.parameter_names}")
-        x = np.asarray(x, dtype=float)
-        dmu, dlam = _linear_lame_derivatives(self.youngs_modulus, self.poisson_ratio, name)
-        F, E, trace = self._strain(x)
-        return self.per_tet._forces_from_pk1(x, self._pk1(F, E, trace, dmu, dlam))
+        H = self._shear_blocks(F, 2.0 * self.mu * E + self.lam * trace[:, None, None] * np.eye(3))
+        GF = np.matmul(self.per_tet.tet_dFdx, np.swapaxes(F, 1, 2))  # GF[k, a, c] = g_a . F_c
+        H += self.lam * GF[:, :, :, None, None] * GF[:, None, None, :, :]
+        return H.reshape(F.shape[0], 12, 12) * self.tet_rest_volume[:, None, None]
