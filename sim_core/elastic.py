@@ -11,7 +11,8 @@ or else ``model.meta["bending_model"]`` (one name for all sheets, or a dict shee
 Solid element: ``model.meta["solid_element"]`` (one name for all solids, or a dict solid name -> name), one
 of :data:`SOLID_ELEMENTS`; default ``"stable_neohookean"`` (linear tets, which lock at nu -> 0.5);
 ``"nodal_pressure_neohookean"`` is the average-nodal-pressure tet that does not
-(:mod:`sim_core.energies.nodal_pressure`).
+(:mod:`sim_core.energies.nodal_pressure`); ``"green_strain"`` Saint Venant-Kirchhoff and ``"modified_stvk"`` its
+volumetric term in ``ln J`` (:mod:`sim_core.energies.green_strain`, :mod:`sim_core.energies.modified_stvk`).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from sim_core.model import Model
 from sim_core.workspace import Workspace
 
 
-SOLID_ELEMENTS: tuple[str, ...] = ("stable_neohookean", "nodal_pressure_neohookean", "green_strain")
+SOLID_ELEMENTS: tuple[str, ...] = ("stable_neohookean", "nodal_pressure_neohookean", "green_strain", "modified_stvk")
 """Elastic kinds (:data:`sim_core.energies.registry.ELASTIC_KINDS`) a solid body may take."""
 
 

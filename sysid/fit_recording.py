@@ -59,7 +59,8 @@ class FitOptions:
         channels: channels to fit (None: all the recording has).
         gel_resolution: gel tet resolution ``(NX, NY, NZ)`` overriding the scene's, or None.
         gel_element: the gel's element and law in every replay, one of :data:`sim_core.elastic.SOLID_ELEMENTS`
-            (``green_strain``: the Green-strain law of :mod:`sim_core.energies.green_strain`), or
+            (``green_strain``: the Green-strain law of :mod:`sim_core.energies.green_strain`; ``modified_stvk``:
+            its volumetric term in ``ln J``, :mod:`sim_core.energies.modified_stvk`), or
             :data:`sysid.gel_law.AUTO_LAW` (the law the recording chooses, each law with its modulus, friction and
             sensor gains moved from the start by one step, a replay with tangents and a plain one a law; the scene's law is kept unless the other is
             better beyond the comparison's spread under the null: :func:`sysid.gel_law.choose_gel_law`); None:

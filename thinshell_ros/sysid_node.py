@@ -12,7 +12,7 @@ Parameters (read at every fit request, so ``ros2 param set`` between fits takes 
 - ``max_nfev`` (int, 30), ``max_time`` (s, 0 = no budget), ``global_search`` (bool: CMA-ES before the
   local least squares), ``gel_resolution`` (str ``NX,NY,NZ``, empty = the scene's), ``gel_element`` (str, the
   gel's law as ``thinshell sysid --gel-element``: ``stable_neohookean`` | ``nodal_pressure_neohookean`` |
-  ``green_strain`` | ``auto``; empty = the scene's), ``workers`` (int),
+  ``green_strain`` | ``modified_stvk`` | ``auto``; empty = the scene's), ``workers`` (int),
   ``arch`` (``cpu`` | ``cuda`` | ``numpy``), ``sensor_calibration`` (bool, true): the fitter's settings
   (:class:`sysid.fit_recording.FitOptions`; the fit runs :func:`sysid.fit_recording.fit_recording`).
 - ``write_scene`` (str): also write the fitted scene there (``thinshell sysid --write-scene``;

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 
-from sim_core.energies import green_strain, hinge_bending, membrane, neohookean, nodal_pressure
+from sim_core.energies import green_strain, hinge_bending, membrane, modified_stvk, neohookean, nodal_pressure
 from sim_core.energies.membrane import StVKMembrane
 from sim_core.energies.neohookean import StableNeoHookean
 from sim_core.errors import ConfigError
@@ -20,7 +20,7 @@ ELASTIC_BACKENDS: tuple[str, ...] = ("numpy", "taichi")
 
 ELASTIC_KINDS: dict[str, tuple[tuple[str, str], tuple[str, str]]] = {
     **membrane.ELASTIC_KINDS, **hinge_bending.ELASTIC_KINDS, **neohookean.ELASTIC_KINDS,
-    **nodal_pressure.ELASTIC_KINDS, **green_strain.ELASTIC_KINDS}
+    **nodal_pressure.ELASTIC_KINDS, **green_strain.ELASTIC_KINDS, **modified_stvk.ELASTIC_KINDS}
 """Elastic potential kind -> (NumPy class, Taichi class) as (module, name)."""
 
 
@@ -31,8 +31,11 @@ def make_elastic_potential(kind: str, *args, backend: str = "numpy", **kwargs):
         kind: ``"stvk_membrane"`` (:class:`~sim_core.energies.membrane.StVKMembrane`),
             ``"discrete_shell_bending"`` (:class:`~sim_core.energies.hinge_bending.reference.DiscreteShellBending`)
             ``"stable_neohookean"`` (:class:`~sim_core.energies.neohookean.reference.StableNeoHookean`)
-            or ``"nodal_pressure_neohookean"``
-            (:class:`~sim_core.energies.nodal_pressure.reference.NodalPressureNeoHookean`, NumPy on both backends).
+            ``"nodal_pressure_neohookean"``
+            (:class:`~sim_core.energies.nodal_pressure.reference.NodalPressureNeoHookean`, NumPy on both backends),
+            ``"green_strain"`` (:class:`~sim_core.energies.green_strain.reference.GreenStrainSolid`) or
+            ``"modified_stvk"`` (:class:`~sim_core.energies.modified_stvk.reference.ModifiedStVKSolid`, NumPy on both
+            backends).
         *args, **kwargs: the constructor arguments of that class.
         backend: ``"numpy"`` (reference) or ``"taichi"`` (the Taichi subclass; the arch is the one
             given to :func:`sim_core.ti_backend.init_backend`).

@@ -17,6 +17,7 @@ Optional extension block (not in INTERFACES.md v1; every key optional)::
       gel_resolution: [8, 6, 5]    # gel tet-box vertices along sensor x, y, z (default_gel_resolution)
       gel_element: stable_neohookean   # or nodal_pressure_neohookean (does not lock; sim_core.energies.nodal_pressure)
                                        # or green_strain (Saint Venant-Kirchhoff; sim_core.energies.green_strain)
+                                       # or modified_stvk (Green-strain shear, (ln J)^2 volume; sim_core.energies.modified_stvk)
       sheet_yield_angle: .inf      # rad, bending plasticity threshold
       damping: 0.0                 # 1/s, mass-proportional
       max_translation_per_step: 0.001   # m

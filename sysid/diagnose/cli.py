@@ -111,7 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gel-element", choices=(*SOLID_ELEMENTS, AUTO_LAW),
                    help="the gel's element and law in the replays (default: the scene's, else stable_neohookean; "
                         "green_strain: Saint Venant-Kirchhoff, the Green-strain law whose pressed gel softens while it "
-                        "is sheared, docs/known_answers.md; auto: each recording's choice between the two laws by "
+                        "is sheared, docs/known_answers.md; modified_stvk: its shear with a volumetric energy in ln J "
+                        "that keeps J > 0 (no collapse in deep presses; not in auto's comparison); auto: each recording's choice between the two laws by "
                         "delta-BIC, each law's modulus, friction and stick speed moved first by one Levenberg-Marquardt step on its start replay's tangents, sensor gains refitted (a replay with tangents and a plain one a law), the scene's "
                         "law kept unless the other wins beyond twice the delta-BIC's spread under the null; reported in "
                         "extra.pipeline.gel_law)")

@@ -22,10 +22,22 @@ of ``tests/sysid/simbag.py``, ``DEEP_PRESS_SLIDE`` of ``tests/sysid/test_gel_law
   instability resolved, not an under-resolved mesh, so no mesh choice makes the law converge (and imitating the
   engine's locking mesh is numerics, not physics).
 
+- The modified Saint Venant-Kirchhoff law (``modified_stvk``: StVK's shear term ``mu tr(E^2)``, its volumetric term
+  written in ``J`` as ``lam / 2 (ln J)^2``; :mod:`sim_core.energies.modified_stvk`) has no stress peak in
+  compression and an energy without bound as ``J -> 0``: on the three meshes where StVK's K collapses in the second,
+  deeper slide (16.2 / 9.6 / 13.5 N/mm at its end, from ~30) it converges pressed and through both slides. Its
+  normal stress on a sheared layer is ``mu gamma^2``, 0.18 of StVK's ``(mu + lam / 2) gamma^2`` at nu 0.45 (the
+  Stable Neo-Hookean's 0.015): the three laws' slide / press ratios (1.15, 1.03-1.05, 0.72-0.74) fall in that
+  order (interpolated linearly in that coefficient between the other two laws, 1.08 is the modified law's
+  prediction on the default mesh; measured 1.05).
+
 Asserted: the default law within 7 % (from above) of the refined mesh pressed and sliding and its slide / press
 ratio within 1.5 %; the Green-strain law below
 ``1/sqrt(3)`` on the default mesh and at least 0.1 lower again on the eight-layer one, above it on the two-layer
-one; the law's uniaxial stress peak at ``1/sqrt(3)`` to 1 % on a single element.
+one; the law's uniaxial stress peak at ``1/sqrt(3)`` to 1 % on a single element; the modified law on ``[10, 8, 3]``,
+``[8, 6, 5]``, ``[8, 6, 9]`` through both slides: the default mesh within 5 % (from above) of the eight-layer one at
+every stage, the slide / press ratio the same to 1.5 % and between 1.0 and 1.1, K in the second slide above 0.9 of
+its pressed value, ``J > 0`` in every tet.
 """
 
 from __future__ import annotations
@@ -40,20 +52,22 @@ from sim_core.simulation import Simulation
 from tests.sysid.simbag import TRUE_PARAMS, scene_with, targets_from_segments
 from tests.sysid.test_gel_law import DEEP_PRESS_SLIDE
 
-PRESSED, SLID = 3, 11
-"""Steps of ``DEEP_PRESS_SLIDE`` at the end of the press (1.25 mm) and of the first slide (2 mm of slip)."""
+PRESSED, SLID, PRESSED_AGAIN, END = 3, 11, 12, 28
+"""Steps of ``DEEP_PRESS_SLIDE`` at the end of the press (1.25 mm), of the first slide (2 mm of slip), of the second
+press (0.2 mm deeper) and of the second slide (4 mm)."""
 
 LIMIT_STRETCH = 1.0 / np.sqrt(3.0)
 """StVK's stretch of largest compressive stress (uniaxial: ``d/dl [l (l^2 - 1)] = 0``)."""
 
 
-def deep_press_slide(gel_element: str, resolution: tuple[int, int, int]) -> dict[str, np.ndarray]:
-    """The card scene's deep press-slide replayed to the end of its first slide with the given gel law and mesh.
+def deep_press_slide(gel_element: str, resolution: tuple[int, int, int], steps: int = SLID) -> dict[str, np.ndarray]:
+    """The card scene's deep press-slide replayed to the end of its first slide (or its first ``steps`` steps) with
+    the given gel law and mesh.
 
     Returns:
-        per step 1..SLID: ``stiffness`` ``F_z / mean marker sink`` (N/m; sink along the sensor's -z, the markers'
+        per step 1..``steps``: ``stiffness`` ``F_z / mean marker sink`` (N/m; sink along the sensor's -z, the markers'
         mean), ``force`` ``|F_z|`` (N), ``stretch`` the smallest principal stretch of the gel's tets (``F = D_s
-        D_m^-1``'s smallest singular value).
+        D_m^-1``'s smallest singular value), ``volume`` the smallest volume ratio ``J = det F``.
     """
     scene = scene_with(TRUE_PARAMS)
     scene = {**scene, "simulation": {**(scene.get("simulation") or {}), "gel_element": gel_element,
@@ -65,8 +79,8 @@ def deep_press_slide(gel_element: str, resolution: tuple[int, int, int]) -> dict
     rest = sim.model.x_rest
     inverse_rest = np.linalg.inv(np.stack([rest[tets[:, i]] - rest[tets[:, 0]] for i in (1, 2, 3)], axis=-1))
     markers0 = sim.observe().tactile["tactile"].markers_xyz[:, 2].copy()
-    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), DEEP_PRESS_SLIDE)[:SLID]
-    out = {"stiffness": [], "force": [], "stretch": []}
+    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), DEEP_PRESS_SLIDE)[:steps]
+    out = {"stiffness": [], "force": [], "stretch": [], "volume": []}
     for target in targets:
         sim.step(Control({"ee": target}))
         reading = sim.observe().tactile["tactile"]
@@ -76,6 +90,7 @@ def deep_press_slide(gel_element: str, resolution: tuple[int, int, int]) -> dict
         out["force"].append(abs(float(reading.wrench[2])))
         out["stiffness"].append(out["force"][-1] / sink if sink > 0.0 else 0.0)
         out["stretch"].append(float(np.linalg.svd(deformed @ inverse_rest, compute_uv=False).min()))
+        out["volume"].append(float(np.linalg.det(deformed @ inverse_rest).min()))
     return {key: np.array([np.nan] + value) for key, value in out.items()}  # index = step
 
 
@@ -136,3 +151,32 @@ def test_the_green_strain_law_has_its_compressive_stress_peak_at_the_limit_stret
     lam_2mu = 3.0e5 * (1 - 0.45) / ((1 + 0.45) * (1 - 2 * 0.45))
     expected = h**3 / 6 * lam_2mu * stretches * (stretches**2 - 1) / 2 / h
     assert force == pytest.approx(expected, rel=1e-6)
+
+
+
+@pytest.fixture(scope="module")
+def modified_stvk():
+    return {res: deep_press_slide("modified_stvk", res, steps=END) for res in ((10, 8, 3), (8, 6, 5), (8, 6, 9))}
+
+
+def test_the_modified_stvk_gel_converges_through_both_slides_where_stvk_collapses(modified_stvk):
+    """Measured K pressed 36.80 / 33.37 / 32.46 N/mm, at the first slide's end 37.90 / 35.05 / 34.12, pressed again
+    0.2 mm deeper 44.69 / 40.89 / 39.70 and at the second slide's end 44.57 / 41.09 / 40.07 (``[10, 8, 3]`` /
+    ``[8, 6, 5]`` / ``[8, 6, 9]``): the default mesh 2.5-2.8 % above the eight-layer one at every stage; in the
+    second slide K stays within 8 % of its pressed value (StVK's falls to 0.3-0.5 of it). Slide / press ratio 1.030 /
+    1.050 / 1.051: between StVK's (0.72-0.74) and Stable Neo-Hookean's (1.15), as the laws' normal stress under
+    shear orders them. Every tet keeps ``J > 0`` by the law; the smallest stretch at the pad's edge is
+    a strain concentration the finer mesh resolves (0.52 / 0.45 / 0.39 at the end), not a collapse: the force does
+    not follow it."""
+    two_layer, default, eight_layer = (modified_stvk[res] for res in ((10, 8, 3), (8, 6, 5), (8, 6, 9)))
+    assert default["force"][PRESSED] > 6.0  # the deep presses' load (6-7.5 N) or more
+    for step in (PRESSED, SLID, PRESSED_AGAIN, END):
+        assert 1.0 < default["stiffness"][step] / eight_layer["stiffness"][step] < 1.05, step
+    trend = [run["stiffness"][SLID] / run["stiffness"][PRESSED] for run in (two_layer, default, eight_layer)]
+    assert trend[1] == pytest.approx(trend[2], rel=0.015)
+    assert all(1.0 < ratio < 1.1 for ratio in trend), trend
+    for run in (two_layer, default, eight_layer):
+        second = run["stiffness"][PRESSED_AGAIN:END + 1]
+        assert second.min() > 0.9 * second[0]
+        assert run["stiffness"][END] > 0.95 * second[0]
+        assert np.nanmin(run["volume"]) > 0.0

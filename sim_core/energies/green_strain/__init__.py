@@ -10,7 +10,7 @@ reference engine's flex solids), opt-in as ``simulation.gel_element: green_strai
 
 from __future__ import annotations
 
-from sim_core.energies.green_strain.reference import GreenStrainSolid, linear_lame_parameters
+from sim_core.energies.green_strain.reference import GreenStrainSolid, GreenStrainTets, linear_lame_parameters
 
 ELASTIC_KINDS: dict[str, tuple[tuple[str, str], tuple[str, str]]] = {
     'green_strain':
@@ -27,4 +27,4 @@ FUSED_KERNELS: dict[tuple[str, str], tuple[str, str]] = {
 """Potential class -> fused part class, each as (module, name): the registration read by
 :data:`sim_core.fused_elastic.FUSED_KERNELS`. Taichi modules are imported on first use."""
 
-__all__ = ['GreenStrainSolid', 'linear_lame_parameters', 'ELASTIC_KINDS', 'FUSED_KERNELS']
+__all__ = ['GreenStrainSolid', 'GreenStrainTets', 'linear_lame_parameters', 'ELASTIC_KINDS', 'FUSED_KERNELS']

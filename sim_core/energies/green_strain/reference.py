@@ -50,8 +50,12 @@ def _linear_lame_derivatives(youngs_modulus: float, poisson_ratio: float, name: 
     return -E / (2.0 * (1.0 + nu) ** 2), E * (1.0 + 2.0 * nu**2) / ((1.0 + nu) * (1.0 - 2.0 * nu)) ** 2
 
 
-class GreenStrainSolid(BorrowedWorkspace):
-    """Saint Venant-Kirchhoff energy of a set of linear tetrahedra (module docstring).
+class GreenStrainTets(BorrowedWorkspace):
+    """What the Green-strain solids share: a set of linear tetrahedra hosted by the Stable Neo-Hookean of the same
+    ``E``, ``nu`` (``dF/dx``, rest volumes, deformation memo), the small-strain Lamé parameters, the Green strain and
+    the Hessian of the shear term ``mu tr(E^2)``, and gradient, Hessian and parameter gradient from a law's ``_state``,
+    ``_pk1``, ``d2psi_dF2`` and ``exact_blocks`` (:class:`GreenStrainSolid`,
+    :class:`sim_core.energies.modified_stvk.ModifiedStVKSolid`). Not a potential itself (no energy).
 
     Args:
         tets, x_rest, youngs_modulus, poisson_ratio: as :class:`StableNeoHookean`'s (tets ``(k, 4)``, rest
@@ -77,49 +81,52 @@ class GreenStrainSolid(BorrowedWorkspace):
         """``dF/dx`` per tet, ``(k, 4, 3)`` in 1/m (the per-tet Stable Neo-Hookean's: the fused kernel reads it)."""
         return self.per_tet.tet_dFdx
 
+    def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``F`` per tet at ``x`` ``(n, 3)``, shape ``(k, 3, 3)`` (the gel candidates' relaxed states read it)."""
+        return self.per_tet.deformation_gradient(x)
+
     def _strain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(F, E, tr E)`` per tet at ``x`` ``(n, 3)``: shapes ``(k, 3, 3)``, ``(k, 3, 3)``, ``(k,)``."""
         F = self.per_tet._deformation(np.asarray(x, dtype=float))
         E = 0.5 * (np.matmul(np.swapaxes(F, 1, 2), F) - np.eye(3))
         return F, E, np.trace(E, axis1=1, axis2=2)
 
-    @staticmethod
-    def _pk1(F: np.ndarray, E: np.ndarray, trace: np.ndarray, mu: float, lam: float) -> np.ndarray:
-        """``P = F (2 mu E + lam tr(E) I)`` in Pa, ``(k, 3, 3)``."""
-        return np.matmul(F, 2.0 * mu * E + lam * trace[:, None, None] * np.eye(3))
+    def _shear_d2psi_dF2(self, F: np.ndarray, E: np.ndarray) -> np.ndarray:
+        """``d2/dF2`` of ``mu tr(E^2)``, ``(k, 3, 3, 3, 3)`` in Pa (index ``[k, i, j, a, b]``)::
 
-    def d2psi_dF2(self, x: np.ndarray) -> np.ndarray:
-        """The exact 9x9 ``d2psi/dF2`` per tet at ``x`` (module docstring), ``(k, 9, 9)`` in Pa."""
-        F, E, trace = self._strain(x)
-        k = F.shape[0]
-        S = 2.0 * self.mu * E + self.lam * trace[:, None, None] * np.eye(3)
+            delta_ia (2 mu E)_bj + mu ((F F^T)_ia delta_jb + F_ib F_aj)."""
         eye = np.eye(3)
-        A = np.einsum("ia,kbj->kijab", eye, S)
+        A = np.einsum("ia,kbj->kijab", eye, 2.0 * self.mu * E)
         A += self.mu * np.einsum("kia,jb->kijab", np.matmul(F, np.swapaxes(F, 1, 2)), eye)
         A += self.mu * np.einsum("kib,kaj->kijab", F, F)
-        A += self.lam * np.einsum("kij,kab->kijab", F, F)
-        return A.reshape(k, 9, 9)
+        return A
 
-    def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
-        """``F`` per tet at ``x`` ``(n, 3)``, shape ``(k, 3, 3)`` (the gel candidates' relaxed states read it)."""
-        return self.per_tet.deformation_gradient(x)
 
-    # ------------------------------------------------------------------ Potential contract
-    def energy(self, x: np.ndarray) -> float:
-        """``sum_t V_t (mu tr(E_t^2) + lam / 2 tr(E_t)^2)`` in J at ``x`` ``(n, 3)`` (0 at rest)."""
-        _, E, trace = self._strain(x)
-        psi = self.mu * np.einsum("kij,kij->k", E, E) + 0.5 * self.lam * trace**2
-        return float(np.dot(self.tet_rest_volume, psi))
+    def _shear_blocks(self, F: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """The 12x12 blocks (per unit rest volume) of ``mu tr(E^2)``'s curvature terms plus the stress term of the
+        second Piola-Kirchhoff stress ``S`` ``(k, 3, 3)``, shape ``(k, 4, 3, 4, 3)`` (``[k, a, c, b, d]``; ``g_a`` row
+        ``a`` of ``dF/dx``, ``F_c`` row ``c`` of ``F``, ``B = F F^T``)::
 
+            delta_cd g_a.S g_b + mu (g_a.g_b) B_cd + mu (g_b.F_c)(g_a.F_d)."""
+        G = self.per_tet.tet_dFdx
+        Gt = np.swapaxes(G, 1, 2)
+        GF = np.matmul(G, np.swapaxes(F, 1, 2))  # GF[k, a, c] = g_a . F_c
+        # H[k, a, c, b, d] by broadcasting, term by term as in the formula
+        H = self.mu * np.swapaxes(GF, 1, 2)[:, None, :, :, None] * GF[:, :, None, None, :]
+        H += (self.mu * np.matmul(G, Gt))[:, :, None, :, None] * np.matmul(F, np.swapaxes(F, 1, 2))[:, None, :, None, :]
+        H += np.matmul(np.matmul(G, S), Gt)[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
+        return H
+
+    # ------------------------------------------------------------------ Potential contract (the laws' shared part)
     def gradient(self, x: np.ndarray) -> np.ndarray:
-        """dE/dx in N, shape ``(n, 3)``: ``V_t P(F_t) dF/dx`` summed per vertex."""
+        """dE/dx in N, shape ``(n, 3)``: ``V_t P(F_t) dF/dx`` summed per vertex (``P`` the law's ``_pk1`` of its
+        ``_state``)."""
         x = np.asarray(x, dtype=float)
-        F, E, trace = self._strain(x)
-        return self.per_tet._forces_from_pk1(x, self._pk1(F, E, trace, self.mu, self.lam))
+        return self.per_tet._forces_from_pk1(x, self._pk1(*self._state(x), self.mu, self.lam))
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
-        """Per-tet 12x12 blocks in N/m: ``V_t (dF/dx)^T A (dF/dx)`` with ``A`` the 9x9 ``d2psi/dF2`` exact
-        (``"none"``: contracted in closed form, :meth:`exact_blocks`) or with its negative eigenvalues clamped /
+        """Per-tet 12x12 blocks in N/m: ``V_t (dF/dx)^T A (dF/dx)`` with ``A`` the law's 9x9 ``d2psi/dF2`` exact
+        (``"none"``: contracted in closed form, the law's ``exact_blocks``) or with its negative eigenvalues clamped /
         flipped (``"clamp"`` / ``"abs"``).
 
         Raises:
@@ -132,6 +139,53 @@ class GreenStrainSolid(BorrowedWorkspace):
         H = np.matmul(np.swapaxes(M, 1, 2), np.matmul(A, M)) * self.tet_rest_volume[:, None, None]
         return HessianBlocks(self.tets, H)
 
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        """d(dE/dx)/dp for ``p`` in :attr:`parameter_names`, shape ``(n, 3)`` (``P`` is linear in ``mu``, ``lam``).
+
+        Raises:
+            KeyError: unknown parameter name.
+        """
+        if name not in self.parameter_names:
+            raise KeyError(f"{type(self).__name__} has no parameter {name!r}; known: {self.parameter_names}")
+        x = np.asarray(x, dtype=float)
+        dmu, dlam = _linear_lame_derivatives(self.youngs_modulus, self.poisson_ratio, name)
+        return self.per_tet._forces_from_pk1(x, self._pk1(*self._state(x), dmu, dlam))
+
+
+class GreenStrainSolid(GreenStrainTets):
+    """Saint Venant-Kirchhoff energy of a set of linear tetrahedra (module docstring).
+
+    Args:
+        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`GreenStrainTets` (and :class:`StableNeoHookean`).
+
+    Attributes:
+        per_tet, mu, lam: as :class:`GreenStrainTets`.
+    """
+
+    def _state(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(F, E, tr E)`` per tet at ``x`` (:meth:`GreenStrainTets._strain`): the arguments of :meth:`_pk1`."""
+        return self._strain(x)
+
+    @staticmethod
+    def _pk1(F: np.ndarray, E: np.ndarray, trace: np.ndarray, mu: float, lam: float) -> np.ndarray:
+        """``P = F (2 mu E + lam tr(E) I)`` in Pa, ``(k, 3, 3)``."""
+        return np.matmul(F, 2.0 * mu * E + lam * trace[:, None, None] * np.eye(3))
+
+    def d2psi_dF2(self, x: np.ndarray) -> np.ndarray:
+        """The exact 9x9 ``d2psi/dF2`` per tet at ``x`` (module docstring), ``(k, 9, 9)`` in Pa."""
+        F, E, trace = self._strain(x)
+        A = self._shear_d2psi_dF2(F, E)
+        A += np.einsum("ia,k,bj->kijab", np.eye(3), self.lam * trace, np.eye(3))
+        A += self.lam * np.einsum("kij,kab->kijab", F, F)
+        return A.reshape(F.shape[0], 9, 9)
+
+    # ------------------------------------------------------------------ Potential contract
+    def energy(self, x: np.ndarray) -> float:
+        """``sum_t V_t (mu tr(E_t^2) + lam / 2 tr(E_t)^2)`` in J at ``x`` ``(n, 3)`` (0 at rest)."""
+        _, E, trace = self._strain(x)
+        psi = self.mu * np.einsum("kij,kij->k", E, E) + 0.5 * self.lam * trace**2
+        return float(np.dot(self.tet_rest_volume, psi))
+
     def exact_blocks(self, x: np.ndarray) -> np.ndarray:
         """The exact 12x12 blocks ``V_t M^T (d2psi/dF2) M`` at ``x`` ``(n, 3)``, ``(k, 12, 12)`` in N/m, contracted by
         hand (``g_a`` row ``a`` of ``dF/dx``, ``F_c`` row ``c`` of ``F``, ``B = F F^T``; the module docstring's
@@ -142,27 +196,7 @@ class GreenStrainSolid(BorrowedWorkspace):
         the fused kernel's entries (:mod:`sim_core.energies.green_strain.fused_kernel`); a fifth of the cost of the
         9x9 product (the sensitivities' exact Hessian takes it every step)."""
         F, E, trace = self._strain(x)
-        G = self.per_tet.tet_dFdx
-        S = 2.0 * self.mu * E + self.lam * trace[:, None, None] * np.eye(3)
-        Gt = np.swapaxes(G, 1, 2)
-        GF = np.matmul(G, np.swapaxes(F, 1, 2))  # GF[k, a, c] = g_a . F_c
-        k = F.shape[0]
-        # H[k, a, c, b, d] by broadcasting, term by term as in the formula
-        H = self.lam * GF[:, :, :, None, None] * GF[:, None, None, :, :]
-        H += self.mu * np.swapaxes(GF, 1, 2)[:, None, :, :, None] * GF[:, :, None, None, :]
-        H += (self.mu * np.matmul(G, Gt))[:, :, None, :, None] * np.matmul(F, np.swapaxes(F, 1, 2))[:, None, :, None, :]
-        H += np.matmul(np.matmul(G, S), Gt)[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
-        return H.reshape(k, 12, 12) * self.tet_rest_volume[:, None, None]
-
-    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
-        """d(dE/dx)/dp for ``p`` in :attr:`parameter_names`, shape ``(n, 3)`` (``P`` is linear in ``mu``, ``lam``).
-
-        Raises:
-            KeyError: unknown parameter name.
-        """
-        if name not in self.parameter_names:
-            raise KeyError(f"GreenStrainSolid has no parameter {name!r}; known: {self.parameter_names}")
-        x = np.asarray(x, dtype=float)
-        dmu, dlam = _linear_lame_derivatives(self.youngs_modulus, self.poisson_ratio, name)
-        F, E, trace = self._strain(x)
-        return self.per_tet._forces_from_pk1(x, self._pk1(F, E, trace, dmu, dlam))
+        H = self._shear_blocks(F, 2.0 * self.mu * E + self.lam * trace[:, None, None] * np.eye(3))
+        GF = np.matmul(self.per_tet.tet_dFdx, np.swapaxes(F, 1, 2))  # GF[k, a, c] = g_a . F_c
+        H += self.lam * GF[:, :, :, None, None] * GF[:, None, None, :, :]
+        return H.reshape(F.shape[0], 12, 12) * self.tet_rest_volume[:, None, None]

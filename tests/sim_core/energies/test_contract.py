@@ -23,9 +23,11 @@ NOT_POTENTIALS = {
                                | {c.__name__ for c in CAPABILITIES}),
     "sim_core.energies.contact.reference": {"ContactFrames", "PairEvaluation"},
     "sim_core.energies.contact.pair_lists": {"CandidateVertices", "BatchLayout"},
+    "sim_core.energies.green_strain.reference": {"GreenStrainTets"},
     "sim_core.candidates.hook": {"CandidateHook", "StepHook", "GelContactFace"},
 }
-"""Public classes of the scanned packages that are not potentials (records, protocols, the hook, a mixin)."""
+"""Public classes of the scanned packages that are not potentials (records, protocols, the hook, a mixin, a base of
+two solids)."""
 
 PACKAGES = (sim_core.energies, sim_core.candidates)
 

@@ -15,8 +15,8 @@ import sim_core.energies
 from sim_core import fused_elastic
 from sim_core.energies import registry
 
-ENERGIES = ("neohookean", "nodal_pressure", "green_strain", "membrane", "hinge_bending", "kirchhoff_bending", "contact",
-            "friction", "damping", "inertia", "gravity", "sphere_contact")
+ENERGIES = ("neohookean", "nodal_pressure", "green_strain", "modified_stvk", "membrane", "hinge_bending",
+            "kirchhoff_bending", "contact", "friction", "damping", "inertia", "gravity", "sphere_contact")
 ROOT = Path(sim_core.energies.__file__).parent
 SHARED_TAICHI = {"__init__", "buffers", "launch", "linalg", "block_projection", "broad_phase", "hash_grid",
                  "hash_candidates", "sweep_candidates", "pair_filters", "pcg", "band_cholesky", "envelope_cholesky", "transfer",
@@ -53,7 +53,7 @@ def test_the_registries_are_made_of_the_folders_registrations():
         assert package.FUSED_KERNELS.items() <= fused_elastic.FUSED_KERNELS.items()
         assert package.ELASTIC_KINDS.items() <= registry.ELASTIC_KINDS.items()
     assert set(registry.ELASTIC_KINDS) == {"stvk_membrane", "discrete_shell_bending", "stable_neohookean",
-                                           "nodal_pressure_neohookean", "green_strain"}
+                                           "nodal_pressure_neohookean", "green_strain", "modified_stvk"}
 
 
 def test_the_shared_taichi_package_holds_infrastructure_only():
