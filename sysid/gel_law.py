@@ -6,25 +6,28 @@ second order in the strain: Stable Neo-Hookean (the default) keeps a sheared lay
 law (Saint Venant-Kirchhoff, :mod:`sim_core.energies.green_strain`) thins it and softens in compression, so a pressed
 gel sinks further once it slides (docs/known_answers.md, "The slide's depth gap is the gel's law").
 
-**Each law near its own fitted values, after two steps.** The laws' difference trades against the gel modulus (a softer
+**Each law near its own fitted values, after one step.** The laws' difference trades against the gel modulus (a softer
 law looks like a softer gel at small strain), so a comparison at one shared modulus, the start's, follows the start where
 the recording barely parts the laws: this simulator's shallow press made with the default law chose the Green-strain
 law from a start x1.3 / x2 its modulus (delta-BIC 21 / 64, docs/benchmarks_log.md, session 53 "49law"). Each law's
-modulus, friction and stick speed (:data:`PROFILED`) are therefore moved towards that law's own values first, by
-:data:`STEPS` Levenberg-Marquardt steps (:func:`law_steps`, :func:`damped_step`, at most :data:`STEP_RADIUS` in each
-search coordinate), each on the tangents of the replay at its start (:meth:`sysid.jacobians.SensitivityJacobian.joint`),
-the last step's end confirmed by a plain replay; the law's cost is the best replay's. Two steps cost two replays
-with tangents and one without a law and reach the costs of each law's fit to convergence on nominal_s101 within 1 %
-(a fit to convergence: up to five replays with tangents a law, 185-260 CPU s there; docs/benchmarks_log.md, session
-55 "49law"; one step from the scene's stick speed, 3.5x the recording's, left them 5-12 % above). Every replay goes
-through the effector's drive fitted from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor
-gains (force gain, marker scales, camera) refitted in closed form within their prior
-(:class:`sysid.gain_profile.GainProfile`), on the tactile channels only. The laws have the same number of
-parameters, so the difference of their Bayesian information criteria is the difference of their whitened sums of
-squares (``-2 log L`` up to a constant shared by both).
+modulus, friction and stick speed (:data:`PROFILED`) are therefore moved towards that law's own values first, by one
+Levenberg-Marquardt step (:func:`law_step`, :func:`damped_step`, at most :data:`STEP_RADIUS` in each search
+coordinate) on the tangents of one cold replay at the start (:class:`sysid.jacobians.TangentReplay`). The step's end
+is not replayed: the raw prediction is moved along its tangents (first order in the step) and the sensor gains are
+refitted to it in closed form, which gives the end's residual and the gains it asks (the force gain a start off its
+modulus asks, the step takes back). So a law costs one replay with tangents; ``thinshell sysid --gel-element auto``
+(:func:`choose_at_start`) compares at the fit's start, after the scene's law was calibrated, where the scene's law's
+replay is the one the calibration made for the fit (:mod:`sysid.calibration_secant`, ``last``) and the other law's is
+the one its fit takes as its first: one replay with tangents over a fit at the scene's law. (Session 55 took two
+steps a law, each replayed, the last one plainly: two replays with tangents and one plain a law, ~100 CPU s on
+nominal_s101, docs/benchmarks_log.md, session 55 "49law".) Every replay goes through the effector's drive fitted
+from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor gains (force gain, marker scales,
+camera) refitted in closed form within their prior (:class:`sysid.gain_profile.GainProfile`); the tactile channels
+are compared. The laws have the same number of parameters, so the difference of their Bayesian information criteria
+is the difference of their whitened sums of squares (``-2 log L`` up to a constant shared by both).
 
 **The margin from the null.** Let ``R`` be the reference law (the scene's) and ``A`` the other, ``e`` the whitened
-residual of ``R`` and ``g = r_R - r_A`` the whitened difference of the two laws' fitted predictions. Where ``R`` made
+residual of ``R`` and ``g = r_R - r_A`` the whitened difference of the two laws' stepped predictions. Where ``R`` made
 the recording (``e`` its noise), ``delta = |r_R|^2 - |r_A|^2 = 2 e.g - |g|^2``: mean ``-|g|^2``, standard deviation
 ``2 sqrt(Var(e.g))``, with ``Var(e.g)`` the long-run variance of the products ``e_i g_i`` binned in time
 (Newey-West with Andrews' window, :mod:`sysid.covariance`: the residuals' time correlation counts, a white-noise
@@ -79,15 +82,11 @@ both x0.7 this simulator's Green-strain press-slide fitted with the modulus alon
 truth and could not part the laws); the lagged friction's stick speed, which the calibration fits too (on
 nominal_s101 at the scene's 10 mm/s both laws stay at whitened RMS 4.4-6.6, fitted to 3.4-3.5 mm/s 1.9-2.5)."""
 
-STEPS = 2
-"""Levenberg-Marquardt steps of each law before the comparison (:func:`law_steps`: a replay with tangents a step,
-a plain replay at the last step's end)."""
-
 STEP_RADIUS = 1.5
 """Largest change of each :data:`PROFILED` search coordinate (log units: a factor 4.5) in a law's step
-(:func:`damped_step`): wide enough that the scene's stick speed (10 mm/s) reaches nominal_s101's 2.8 mm/s (ln 3.5 = 1.27)
-and a start x2 its values in one Gauss-Newton step, narrow enough that a step the tangents mispredict stays where the confirming replay still follows the
-recording. A step that raises the cost is halved once (:func:`law_steps`)."""
+(:func:`damped_step`): wide enough that the scene's stick speed (10 mm/s) reaches nominal_s101's 2.8 mm/s (ln 3.5 =
+1.27) and a start x2 its values in one Gauss-Newton step, narrow enough that a step the tangents mispredict stays near
+where they hold."""
 
 CHECKED_GAINS = ("force_gain", "marker_scale_xy", "marker_scale_z")
 """Sensor gains whose excursion outside their prior keeps the reference law (:func:`beyond_prior`)."""
@@ -99,23 +98,23 @@ delta-BIC under the null (module docstring)."""
 
 @dataclass(frozen=True)
 class GelLawChoice:
-    """What :func:`choose_gel_law` found.
+    """What :func:`choose_gel_law` / :func:`choose_at_start` found.
 
     Attributes:
         chosen: the law the recording is replayed with: the other law where it is better by more than the margin,
             else the reference law.
-        cost: law -> whitened sum of squares over :attr:`channels` at the law's stepped values (noise units squared,
-            summed over samples).
-        rms: law -> channel -> whitened RMS at the law's fitted values.
+        cost: law -> whitened sum of squares over :attr:`channels` at the law's stepped values as its tangents
+            predict it (:func:`law_step`; noise units squared, summed over samples).
+        rms: law -> channel -> whitened RMS at the law's stepped values (predicted).
         margin: the runner-up's cost minus the best law's (the delta-BIC in the best law's favour; equal parameter
             counts).
         channels: the compared channels.
         reference: the law kept unless the data reject it (the scene's).
         fitted: law -> its :data:`PROFILED` values after its step (empty where nothing was stepped).
-        gains: law -> the sensor gains its fitted replay asked for before their prior bounded them (``force_gain``,
+        gains: law -> the sensor gains its step's end asked for before their prior bounded them (``force_gain``,
             ``marker_scale_xy``, ``marker_scale_z``, ...; empty without ``gain_prior``).
-        steps: law -> whitened sums of squares of its replays in turn (:func:`law_steps`: the start, the step, half
-            the step where the step raised the cost).
+        steps: law -> whitened sums of squares of the compared rows at the start and, predicted, at its step's end
+            (:func:`law_step`).
         beyond_prior: law -> how far its asked force gain or marker scales lie outside their prior
             (:func:`beyond_prior`; filled where the other law is the best).
         null_sd: standard deviation of the reference's delta-BIC under the null (module docstring); NaN where the
