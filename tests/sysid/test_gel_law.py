@@ -191,3 +191,29 @@ def test_the_damped_step_is_gauss_newtons_within_its_radius_and_shorter_beyond()
     J_nan = J.copy()
     J_nan[:, 1] = np.nan
     assert damped_step(J_nan, r0, 1.0, -inf, inf)[1] == 0.0
+
+
+def test_the_predicted_step_end_is_the_replay_to_first_order(concealed):
+    """A law's step is not replayed: :func:`sysid.gel_law._stepped_raw` moves the raw prediction along the start
+    replay's tangents. Against replays with one parameter moved by 1e-3 in log, the prediction's error relative to the
+    replay's own change of the markers and the wrench (measured, default law / Green strain): modulus 6e-4 / 5e-3, stick
+    speed 2.4e-3 / 6.7e-3, gel-sheet friction 0.05 / 0.12 (the slip's curvature: at 1e-4 0.004 / 0.025). A wrong
+    tangent, unit or alignment is off by order one."""
+    from sysid.gel_law import PROFILED, _stepped_raw
+    from sysid.jacobians import TangentReplay
+    from sysid.observation import ObservationModel
+
+    law, bag = concealed
+    model = ObservationModel(load_evidence(bag), arch="cpu", simulation={"gel_element": law})
+    start = {"gel.youngs_modulus": 0.9 * TRUE_PARAMS["gel.youngs_modulus"], "friction.gel_sheet": 0.7,
+             "contact.eps_v": 0.006}
+    made, _ = TangentReplay.make(model, start, PROFILED)
+    raw0 = model.predict_raw(model.simulate(start))
+    h = 1e-3
+    for name, bound in (("gel.youngs_modulus", 0.02), ("contact.eps_v", 0.02), ("friction.gel_sheet", 0.2)):
+        moved = _stepped_raw(model, made, start, {name: h})
+        replayed = model.predict_raw(model.simulate({**start, name: start[name] * np.exp(h)}))
+        for ch in ("markers_xyz", "wrench"):
+            change = np.linalg.norm(replayed[ch] - raw0[ch])
+            error = np.linalg.norm(replayed[ch] - moved[ch])
+            assert change > 0.0 and error < bound * change, (name, ch, error / change)
