@@ -384,7 +384,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     start = made.pop() if made else None
     law = None
     if options.gel_element == AUTO_LAW:  # one replay with tangents of the other law, handed to its fit if chosen
-        extra = [n for n in nuisance if n not in fitted] if options.robust is not None and not options.warm_start else []
+        cold = options.robust is not None and not options.warm_start  # as sysid.fit.fit takes the nuisance columns
+        extra = [n for n in nuisance if n not in fitted] if cold else []
         law, model, start = choose_at_start(model, fitted, extra, start,
                                             gain_prior=GainPrior() if sensor is None else sensor.gain_prior)
     result = fit(model, fitted, nuisance=nuisance, made=start, **fit_args)

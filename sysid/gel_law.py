@@ -435,7 +435,8 @@ def _with_law(model: ObservationModel, law: str) -> ObservationModel:
     and channel scales."""
     out = ObservationModel(model.evidence, scene=model.scene, dt=model.dt, t_max=model.t_max,
                            channels=list(model.channels), simulation={"gel_element": law}, arch=model.arch)
-    changed = {n: v for n in model.simulation().parameter_names if (v := model.parameter_value(n)) != out.parameter_value(n)}
+    changed = {n: v for n in model.simulation().parameter_names
+               if (v := model.parameter_value(n)) != out.parameter_value(n)}
     out.set_nominal({**changed, **dict.fromkeys(SENSOR_PARAMETERS, model.nominal_normal_offset)})
     out.set_drive_stiffness(model.drive_stiffness, model.drive_damping)
     out.sensor_calibration, out.marker_rest = model.sensor_calibration, model.marker_rest
