@@ -114,7 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "is sheared, docs/known_answers.md; auto: each recording's choice between the two laws by "
                         "delta-BIC, each law's modulus, friction and stick speed moved first by one Levenberg-Marquardt step "
                         "predicted on its start replay's tangents, sensor gains refitted (a replay with tangents a law), "
-                        "the scene's law kept unless the other wins beyond twice the delta-BIC's spread under the null; reported in "
+                        "the scene's law kept unless the other wins beyond twice the delta-BIC's spread under the "
+                        "null; reported in "
                         "extra.pipeline.gel_law)")
     p.add_argument("--fit-max-nfev", type=int, default=8, help="function evaluations of the calibration's fit")
     p.add_argument("--arch", choices=("numpy", "cpu", "cuda"), default="cpu",
