@@ -93,9 +93,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the gel's element and law in every replay (default: the scene's, else stable_neohookean; "
                         "green_strain: Saint Venant-Kirchhoff, whose pressed gel softens while it is sheared, "
                         "docs/known_answers.md; modified_stvk: its shear with a volumetric energy in ln J that keeps "
-                        "J > 0 (no collapse in deep presses; not in auto's comparison); auto: the recording's choice between stable_neohookean and green_strain "
-                        "by delta-BIC, each law's modulus, friction and stick speed moved first by one Levenberg-Marquardt step on its start replay's tangents, sensor gains refitted (a replay with tangents and a plain one a law), the "
-                        "scene's law kept unless the other wins beyond twice the delta-BIC's spread under the null); "
+                         "J > 0 (no collapse in deep presses; not in auto's comparison); auto: the recording's choice between stable_neohookean and green_strain "
+                        "by delta-BIC, chosen at the fit's start after the scene's law is calibrated, each law's "
+                        "modulus, friction and stick speed moved by one Levenberg-Marquardt step predicted on its "
+                        "start replay's tangents, sensor gains refitted (one replay with tangents more than the scene's "
+                        "law), the scene's law kept unless the other wins beyond twice the delta-BIC's spread under the "
+                        "null); "
                         "fit.json diagnostics.gel_law reports it")
     p.add_argument("--seed", type=int, default=0, help="seed of the global phase")
     p.add_argument("--workers", type=int, default=1, help="processes for batched replays")

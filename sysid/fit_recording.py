@@ -30,10 +30,11 @@ from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.diagnose.probe_worker import calibration_probe
 from sysid.drive_calibration import fit_drive
 from sysid.evidence import load_evidence
+from sysid.gain_prior import GainPrior
 from sysid.gain_profile import GainProfile
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
                        FitResult, fit, joint_tangent_names)
-from sysid.gel_law import AUTO_LAW, choose_gel_law
+from sysid.gel_law import AUTO_LAW, choose_at_start
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.jacobians import TangentReplay, make_jacobian
 from sysid.observation import ObservationModel, SimTrace
@@ -61,10 +62,12 @@ class FitOptions:
         gel_element: the gel's element and law in every replay, one of :data:`sim_core.elastic.SOLID_ELEMENTS`
             (``green_strain``: the Green-strain law of :mod:`sim_core.energies.green_strain`; ``modified_stvk``:
             its volumetric term in ``ln J``, :mod:`sim_core.energies.modified_stvk`), or
-            :data:`sysid.gel_law.AUTO_LAW` (the law the recording chooses, each law with its modulus, friction and
-            sensor gains moved from the start by one step, a replay with tangents and a plain one a law; the scene's law is kept unless the other is
-            better beyond the comparison's spread under the null: :func:`sysid.gel_law.choose_gel_law`); None:
-            the scene's. ``fit.json`` reports it (``diagnostics.gel_law``).
+            :data:`sysid.gel_law.AUTO_LAW` (the law the recording chooses at the fit's start: the scene's law
+            calibrated, each law's modulus, friction and stick speed stepped once on its start replay's tangents, the
+            scene's law kept unless the other is better beyond the comparison's spread under the null,
+            :func:`sysid.gel_law.choose_at_start`; one replay with tangents more than the scene's law, which a fit
+            with the other law takes as its first); None: the scene's. ``fit.json`` reports it
+            (``diagnostics.gel_law``). Not with ``tack``.
         arch: elastic terms of the replays: ``cpu`` / ``cuda`` (Taichi) or ``numpy``.
         jacobian: Jacobian provider (``auto``, ``sensitivity``, ``fd``).
         fd_step: finite-difference step in log units.
@@ -310,11 +313,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         warnings.simplefilter("always")
         evidence = load_evidence(bag, scene_path=options.scene, include_image="auto",
                                  recording_map=options.recording_map, t_start=options.t_start, t_end=options.t_end)
-        # auto: two replays per law here (it starts Taichi, so the calibration's secant probe is then not forked)
-        law = None if options.gel_element != AUTO_LAW else choose_gel_law(
-            evidence, dt=options.dt, t_max=options.t_max, arch=options.arch, simulation=simulation)
-        if options.gel_element is not None:
-            simulation["gel_element"] = options.gel_element if law is None else law.chosen
+        if options.gel_element not in (None, AUTO_LAW):  # auto: the scene's law calibrated, chosen at the fit's start
+            simulation["gel_element"] = options.gel_element
         model = ObservationModel(evidence, scene=options.scene, dt=options.dt, t_max=options.t_max,
                                  channels=None if options.channels is None else list(options.channels),
                                  simulation=simulation or None, arch=options.arch)
@@ -326,6 +326,10 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     drive = fit_drive(model) if options.drive and model.sensor is not None else None
     if drive is not None:
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
+    if options.gel_element == AUTO_LAW and (model.sensor is None or options.tack):
+        raise ConfigError(f"{bag}: --gel-element auto compares the gel laws on a tactile sensor's replays without the "
+                          f"tack ({'the scene has no tactile sensor' if model.sensor is None else '--tack given'}); "
+                          "name the law instead")
     tack = nominal_tack(model) if options.tack and model.sensor is not None else None
     layer_on = tack is not None and SHEAR_STIFFNESS_SETTING in (tack.params or {})
     if SHEAR_STIFFNESS_SETTING in options.params and not layer_on:
@@ -378,7 +382,14 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                     batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
                     stop_trial_robust=options.stop_trial_robust, hold_unidentified=options.hold_unidentified,
                     first_step=options.first_step, reweight_channels=layer_on)
-    result = fit(model, fitted, nuisance=nuisance, made=made.pop() if made else None, **fit_args)
+    start = made.pop() if made else None
+    law = None
+    if options.gel_element == AUTO_LAW:  # one replay with tangents of the other law, handed to its fit if chosen
+        cold = options.robust is not None and not options.warm_start  # as sysid.fit.fit takes the nuisance columns
+        extra = [n for n in nuisance if n not in fitted] if cold else []
+        law, model, start = choose_at_start(model, fitted, extra, start,
+                                            gain_prior=GainPrior() if sensor is None else sensor.gain_prior)
+    result = fit(model, fitted, nuisance=nuisance, made=start, **fit_args)
     fit_replays = [result.sim_runs]
     result.warnings[:0] = list(notes)
     if wrench is not None and wrench.tripped:

@@ -6,25 +6,28 @@ second order in the strain: Stable Neo-Hookean (the default) keeps a sheared lay
 law (Saint Venant-Kirchhoff, :mod:`sim_core.energies.green_strain`) thins it and softens in compression, so a pressed
 gel sinks further once it slides (docs/known_answers.md, "The slide's depth gap is the gel's law").
 
-**Each law near its own fitted values, after two steps.** The laws' difference trades against the gel modulus (a softer
+**Each law near its own fitted values, after one step.** The laws' difference trades against the gel modulus (a softer
 law looks like a softer gel at small strain), so a comparison at one shared modulus, the start's, follows the start where
 the recording barely parts the laws: this simulator's shallow press made with the default law chose the Green-strain
 law from a start x1.3 / x2 its modulus (delta-BIC 21 / 64, docs/benchmarks_log.md, session 53 "49law"). Each law's
-modulus, friction and stick speed (:data:`PROFILED`) are therefore moved towards that law's own values first, by
-:data:`STEPS` Levenberg-Marquardt steps (:func:`law_steps`, :func:`damped_step`, at most :data:`STEP_RADIUS` in each
-search coordinate), each on the tangents of the replay at its start (:meth:`sysid.jacobians.SensitivityJacobian.joint`),
-the last step's end confirmed by a plain replay; the law's cost is the best replay's. Two steps cost two replays
-with tangents and one without a law and reach the costs of each law's fit to convergence on nominal_s101 within 1 %
-(a fit to convergence: up to five replays with tangents a law, 185-260 CPU s there; docs/benchmarks_log.md, session
-55 "49law"; one step from the scene's stick speed, 3.5x the recording's, left them 5-12 % above). Every replay goes
-through the effector's drive fitted from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor
-gains (force gain, marker scales, camera) refitted in closed form within their prior
-(:class:`sysid.gain_profile.GainProfile`), on the tactile channels only. The laws have the same number of
-parameters, so the difference of their Bayesian information criteria is the difference of their whitened sums of
-squares (``-2 log L`` up to a constant shared by both).
+modulus, friction and stick speed (:data:`PROFILED`) are therefore moved towards that law's own values first, by one
+Levenberg-Marquardt step (:func:`law_step`, :func:`damped_step`, at most :data:`STEP_RADIUS` in each search
+coordinate) on the tangents of one cold replay at the start (:class:`sysid.jacobians.TangentReplay`). The step's end
+is not replayed: the raw prediction is moved along its tangents (first order in the step) and the sensor gains are
+refitted to it in closed form, which gives the end's residual and the gains it asks (the force gain a start off its
+modulus asks, the step takes back). So a law costs one replay with tangents; ``thinshell sysid --gel-element auto``
+(:func:`choose_at_start`) compares at the fit's start, after the scene's law was calibrated, where the scene's law's
+replay is the one the calibration made for the fit (:mod:`sysid.calibration_secant`, ``last``) and the other law's is
+the one its fit takes as its first: one replay with tangents over a fit at the scene's law. (Session 55 took two
+steps a law, each replayed, the last one plainly: two replays with tangents and one plain a law, ~100 CPU s on
+nominal_s101, docs/benchmarks_log.md, session 55 "49law".) Every replay goes through the effector's drive fitted
+from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor gains (force gain, marker scales,
+camera) refitted in closed form within their prior (:class:`sysid.gain_profile.GainProfile`); the tactile channels
+are compared. The laws have the same number of parameters, so the difference of their Bayesian information criteria
+is the difference of their whitened sums of squares (``-2 log L`` up to a constant shared by both).
 
 **The margin from the null.** Let ``R`` be the reference law (the scene's) and ``A`` the other, ``e`` the whitened
-residual of ``R`` and ``g = r_R - r_A`` the whitened difference of the two laws' fitted predictions. Where ``R`` made
+residual of ``R`` and ``g = r_R - r_A`` the whitened difference of the two laws' stepped predictions. Where ``R`` made
 the recording (``e`` its noise), ``delta = |r_R|^2 - |r_A|^2 = 2 e.g - |g|^2``: mean ``-|g|^2``, standard deviation
 ``2 sqrt(Var(e.g))``, with ``Var(e.g)`` the long-run variance of the products ``e_i g_i`` binned in time
 (Newey-West with Andrews' window, :mod:`sysid.covariance`: the residuals' time correlation counts, a white-noise
@@ -52,16 +55,15 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from sim_core.errors import CalibrationError
+from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
 from sim_core.scenes.tactile_scene import SIMULATION_KEYS
-from sysid.calibration import whitened_rms
 from sysid.covariance import andrews_bandwidth, bin_scores, hac_meat, residual_bin_s, residual_times_s, time_bins
 from sysid.drive_calibration import fit_drive
 from sysid.fit import FitProblem, parameter_spec
 from sysid.gain_prior import PRIOR_OF, GainPrior
 from sysid.gain_profile import GainProfile
-from sysid.jacobians import make_jacobian
-from sysid.observation import ObservationModel, scene_dict_for
+from sysid.jacobians import DIFFERENCE_PARAMETERS, TangentReplay, load_sensitivity, make_jacobian
+from sysid.observation import SENSOR_PARAMETERS, ObservationModel, scene_dict_for
 
 GEL_LAWS: tuple[str, ...] = ("stable_neohookean", "green_strain")
 """The gel laws compared by default (:data:`sim_core.elastic.SOLID_ELEMENTS` names)."""
@@ -80,15 +82,11 @@ both x0.7 this simulator's Green-strain press-slide fitted with the modulus alon
 truth and could not part the laws); the lagged friction's stick speed, which the calibration fits too (on
 nominal_s101 at the scene's 10 mm/s both laws stay at whitened RMS 4.4-6.6, fitted to 3.4-3.5 mm/s 1.9-2.5)."""
 
-STEPS = 2
-"""Levenberg-Marquardt steps of each law before the comparison (:func:`law_steps`: a replay with tangents a step,
-a plain replay at the last step's end)."""
-
 STEP_RADIUS = 1.5
 """Largest change of each :data:`PROFILED` search coordinate (log units: a factor 4.5) in a law's step
-(:func:`damped_step`): wide enough that the scene's stick speed (10 mm/s) reaches nominal_s101's 2.8 mm/s (ln 3.5 = 1.27)
-and a start x2 its values in one Gauss-Newton step, narrow enough that a step the tangents mispredict stays where the confirming replay still follows the
-recording. A step that raises the cost is halved once (:func:`law_steps`)."""
+(:func:`damped_step`): wide enough that the scene's stick speed (10 mm/s) reaches nominal_s101's 2.8 mm/s (ln 3.5 =
+1.27) and a start x2 its values in one Gauss-Newton step, narrow enough that a step the tangents mispredict stays near
+where they hold."""
 
 CHECKED_GAINS = ("force_gain", "marker_scale_xy", "marker_scale_z")
 """Sensor gains whose excursion outside their prior keeps the reference law (:func:`beyond_prior`)."""
@@ -100,23 +98,23 @@ delta-BIC under the null (module docstring)."""
 
 @dataclass(frozen=True)
 class GelLawChoice:
-    """What :func:`choose_gel_law` found.
+    """What :func:`choose_gel_law` / :func:`choose_at_start` found.
 
     Attributes:
         chosen: the law the recording is replayed with: the other law where it is better by more than the margin,
             else the reference law.
-        cost: law -> whitened sum of squares over :attr:`channels` at the law's stepped values (noise units squared,
-            summed over samples).
-        rms: law -> channel -> whitened RMS at the law's fitted values.
+        cost: law -> whitened sum of squares over :attr:`channels` at the law's stepped values as its tangents
+            predict it (:func:`law_step`; noise units squared, summed over samples).
+        rms: law -> channel -> whitened RMS at the law's stepped values (predicted).
         margin: the runner-up's cost minus the best law's (the delta-BIC in the best law's favour; equal parameter
             counts).
         channels: the compared channels.
         reference: the law kept unless the data reject it (the scene's).
         fitted: law -> its :data:`PROFILED` values after its step (empty where nothing was stepped).
-        gains: law -> the sensor gains its fitted replay asked for before their prior bounded them (``force_gain``,
+        gains: law -> the sensor gains its step's end asked for before their prior bounded them (``force_gain``,
             ``marker_scale_xy``, ``marker_scale_z``, ...; empty without ``gain_prior``).
-        steps: law -> whitened sums of squares of its replays in turn (:func:`law_steps`: the start, the step, half
-            the step where the step raised the cost).
+        steps: law -> whitened sums of squares of the compared rows at the start and, predicted, at its step's end
+            (:func:`law_step`).
         beyond_prior: law -> how far its asked force gain or marker scales lie outside their prior
             (:func:`beyond_prior`; filled where the other law is the best).
         null_sd: standard deviation of the reference's delta-BIC under the null (module docstring); NaN where the
@@ -235,56 +233,149 @@ def damped_step(J: np.ndarray, r: np.ndarray, radius: float, lb: np.ndarray, ub:
     return np.clip(step, lb, ub)
 
 
-def law_steps(model: ObservationModel, names: Sequence[str], start: Mapping[str, float], steps: int = STEPS,
-              radius: float = STEP_RADIUS) -> tuple[dict[str, float], dict[str, np.ndarray], list[float]]:
-    """``(values, prediction, costs)`` of ``model`` after ``steps`` Levenberg-Marquardt steps (:func:`damped_step`)
-    of the parameters ``names`` from ``start`` (a missing name: the model's value), each on the tangents of the
-    replay at its start (:class:`sysid.fit.FitProblem` with the sensitivity provider's joint replay), the last one's
-    end replayed without tangents. A step that raised the cost or diverged is halved once (one more replay) and
-    the steps end where the half did too. ``values`` and ``prediction`` of the best replay, ``costs`` the whitened
-    sums of squares of the replays in turn (inf: diverged).
+@dataclass
+class LawStep:
+    """One law's replay with tangents at the start and its Levenberg-Marquardt step, predicted on those tangents
+    (:func:`law_step`).
+
+    Attributes:
+        values: the stepped parameters' values at the step's end, SI.
+        start_cost: whitened sum of squares of the compared rows at the start (the replay's own).
+        residual: the compared rows' whitened residual at the step's end as the tangents predict it, ``r + J s``
+            ``(m,)``.
+        gains: the sensor gains the start's replay asked for before their prior bounded them (empty without a gain
+            profile).
+        made: the start's replay with the tangents of every name (:class:`sysid.jacobians.TangentReplay`), for a fit
+            at the same start to take as its first joint evaluation; None where the replay could not carry tangents.
+    """
+
+    values: dict[str, float]
+    start_cost: float
+    residual: np.ndarray
+    gains: dict[str, float]
+    made: TangentReplay | None
+
+
+def law_step(model: ObservationModel, names: Sequence[str], start: Mapping[str, float], rows: np.ndarray, *,
+             stepped: Sequence[str] = PROFILED, extra: Sequence[str] = (), made: TangentReplay | None = None,
+             radius: float = STEP_RADIUS) -> LawStep:
+    """One Levenberg-Marquardt step (:func:`damped_step`) of ``model``'s parameters ``stepped`` (those of ``names``),
+    on the whitened rows ``rows`` of its residual, from one cold replay with the tangents of ``names`` (then
+    ``extra``, held at their nominal, as :func:`sysid.fit.joint_tangent_names` orders a fit's) at ``start`` (a
+    missing name: the model's value). The end is not replayed: its residual is the tangents' prediction ``r + J s``.
+    ``made`` is taken for that replay where it is the same one (:meth:`sysid.jacobians.TangentReplay.matches`), else
+    one is made.
 
     Raises:
-        CalibrationError: the replay at the start diverged.
+        CalibrationError: the replay diverged at the start.
     """
     specs = [parameter_spec(n, float(start[n]) if n in start else model.parameter_value(n)) for n in names]
+    extra_specs = [parameter_spec(n, model.parameter_value(n)) for n in extra]
     provider = make_jacobian("auto")
-    problem = FitProblem(model, specs, joint=getattr(provider, "joint", None))
+    problem = FitProblem(model, specs, joint=getattr(provider, "joint", None), extra=extra_specs)
+    u = np.zeros(len(specs))
+    tangent_names = [n for n in names if n not in DIFFERENCE_PARAMETERS]  # as the joint replay asks them
+    if not any(n in DIFFERENCE_PARAMETERS for n in extra):
+        tangent_names += list(extra)
+    if problem.joint is not None and (made is None or not made.matches(model, problem.values(u), tangent_names)):
+        try:
+            made = TangentReplay.make(model, problem.values(u), tangent_names)[0]
+        except ConfigError:  # not differentiable (a step with dt halved): the provider's own columns below
+            made = None
+        except SimulationDivergedError as err:
+            raise CalibrationError(f"the replay diverged at the start values {problem.values(u)}: {err} "
+                                   "(try a smaller --dt)") from err
+    problem.made = made
     try:
-        u = np.zeros(len(specs))
         r = problem.residual(u, phase="initial")
         if r is None:
             raise CalibrationError(f"the replay diverged at the start values {problem.values(u)}: "
                                    f"{problem.last_failure} (try a smaller --dt)")
-        lb, ub = problem.bounds
-        for k in range(steps):
-            J = problem.cached_jacobian(u)
-            if J is None:  # no tangents (finite differences' provider): its columns, a replay each
-                J = provider(problem, u)
-            step = damped_step(J, r, radius, lb - u, ub - u)
-            # the last step's end needs no tangents: a plain replay
-            phase = "final" if k == steps - 1 else "initial"
-            for _ in range(2):  # the step, then half of it where the step raised the cost (the tangents overshot)
-                trial = problem.residual(u + step, phase=phase) if np.any(step != 0.0) else None
-                if trial is not None and float(trial @ trial) < float(r @ r):
-                    break
-                step = 0.5 * step
-            else:
-                break
-            u, r = u + step, trial
-        costs = [2.0 * e.cost for e in problem.history]
-        prediction = problem.best_prediction()
-        return problem.values(problem.best[1]), prediction, costs
+        J = problem.cached_jacobian(u)
+        if J is None:  # no joint replay (finite differences' provider): its columns, a replay each
+            J = provider(problem, u)
+        found = None if model.gain_profile is None else model.gain_profile.calibration_of(problem.best_prediction())
     finally:
         problem.close()
+    cols = [i for i, n in enumerate(names) if n in stepped]
+    Js = np.asarray(J, dtype=float)[rows][:, cols]
+    lb, ub = problem.bounds
+    step = damped_step(Js, r[rows], radius, lb[cols], ub[cols])
+    start_values = problem.values(u)
+    u[cols] = step
+    residual = r[rows] + np.where(np.isfinite(Js), Js, 0.0) @ step
+    if model.gain_profile is not None and made is not None and np.any(step != 0.0):
+        # the raw prediction stepped on its tangents and the gains refitted to it in closed form: the gains the step's
+        # end asks (a law's start off its modulus asks a force gain that its step takes back) and its residual
+        moved = _stepped_raw(model, made, start_values, {names[i]: float(step[k]) for k, i in enumerate(cols)})
+        residual = model.residuals(model.gain_profile(moved))[rows]
+        found = model.gain_profile.last
+    return LawStep(values={names[i]: problem.values(u)[names[i]] for i in cols}, start_cost=float(r[rows] @ r[rows]),
+                   residual=residual, gains={} if found is None else {k: float(v) for k, v in found[1].items()},
+                   made=made)
+
+
+def _stepped_raw(model: ObservationModel, made: TangentReplay, values: Mapping[str, float],
+                 step: Mapping[str, float]) -> dict[str, np.ndarray]:
+    """The raw aligned prediction (:meth:`sysid.observation.ObservationModel.predict_raw`) of ``made``'s replay at
+    ``values`` moved along its tangents by ``step`` (parameter -> search-coordinate change, log for a positive scale
+    parameter: :func:`sysid.fit.parameter_spec`): ``y + sum_k dy/du_k step_k``, channel -> array."""
+    sim = model.prepare(values)
+    traj, dX, dF, dQ = made.rollout
+    raw = model.predict_raw(model.trace_of(sim, traj.states))
+    obs = load_sensitivity().observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor,
+                                                       effector_position=dQ)
+    du = np.zeros(len(made.names))
+    for k, name in enumerate(made.names):
+        if name in step:
+            spec = parameter_spec(name, float(values[name]))
+            du[k] = float(step[name]) * (abs(float(values[name])) if spec.log else spec.scale)
+    return {ch: y + model.align(ch, obs[ch]) @ du if ch in obs else y for ch, y in raw.items()}
+
+
+def compared_rows(model: ObservationModel, channels: Sequence[str]) -> tuple[tuple[str, ...], np.ndarray]:
+    """``(channels, rows)``: the compared ``channels`` the model replays, in its order, and their rows of its
+    whitened residual (:meth:`sysid.observation.ObservationModel.channel_slices`)."""
+    slices = model.channel_slices()
+    present = tuple(ch for ch in model.channels if ch in channels)
+    return present, np.concatenate([np.arange(slices[ch].start, slices[ch].stop) for ch in present])
+
+
+def decide(steps: Mapping[str, LawStep], reference: str, model: ObservationModel, channels: Sequence[str],
+           gain_prior: GainPrior | None, null_sigmas: float = NULL_SIGMAS) -> GelLawChoice:
+    """The law the compared rows of ``steps`` (law -> its :func:`law_step` on ``channels`` of ``model``, the same
+    rows for every law) choose: the other law only where its predicted whitened sum of squares is smaller than the
+    ``reference``'s beyond ``null_sigmas`` times the spread under the null and it asks its sensor gains no further
+    outside ``gain_prior`` than the reference does (module docstring)."""
+    cost = {law: float(s.residual @ s.residual) for law, s in steps.items()}
+    slices = model.channel_slices()
+    sizes = {ch: slices[ch].stop - slices[ch].start for ch in channels}
+    bounds = np.cumsum([0, *sizes.values()])
+    rms = {law: {ch: float(np.sqrt(np.mean(s.residual[a:b] ** 2))) for ch, a, b in zip(channels, bounds, bounds[1:])}
+           for law, s in steps.items()}
+    other = next(law for law in steps if law != reference)
+    ranked = sorted(cost, key=cost.get)
+    margin = cost[ranked[1]] - cost[ranked[0]]
+    null_sd, decided, beyond = math.nan, True, {}
+    if ranked[0] == other:
+        null_sd = null_spread(steps[other].residual, steps[reference].residual - steps[other].residual,
+                              _residual_times(model, channels), residual_bin_s(model))
+        beyond = {law: beyond_prior(s.gains, gain_prior) for law, s in steps.items()} if gain_prior else {}
+        decided = margin > null_sigmas * null_sd and beyond.get(other, 0.0) <= beyond.get(reference, 0.0)
+    return GelLawChoice(chosen=other if ranked[0] == other and decided else reference, cost=cost, rms=rms,
+                        margin=margin, channels=tuple(channels), reference=reference,
+                        fitted={law: dict(s.values) for law, s in steps.items()}, null_sd=null_sd, decided=decided,
+                        gains={law: dict(s.gains) for law, s in steps.items()},
+                        steps={law: [s.start_cost, cost[law]] for law, s in steps.items()}, beyond_prior=beyond)
 
 
 def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01, t_max: float | None = None,
                    values: Mapping[str, float] | None = None, channels: Sequence[str] = TACTILE,
                    arch: str = "cpu", simulation: Mapping[str, Any] | None = None,
-                   profile: Sequence[str] = PROFILED, n_steps: int = STEPS, step_radius: float = STEP_RADIUS,
+                   profile: Sequence[str] = PROFILED, step_radius: float = STEP_RADIUS,
                    null_sigmas: float = NULL_SIGMAS, gain_prior: GainPrior | None = GainPrior()) -> GelLawChoice:
-    """Step each gel law's :data:`PROFILED` values towards ``evidence`` and choose the law (module docstring).
+    """Step each gel law's :data:`PROFILED` values towards ``evidence`` and choose the law (module docstring): one
+    replay with tangents a law.
 
     Args:
         evidence: a loaded recording (:func:`sysid.evidence.load_evidence`) of a tactile scene.
@@ -294,9 +385,8 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
         values: parameter values of every replay, and the start of each law's step (None: the scene's).
         channels: the compared channels; those the recording lacks are skipped.
         simulation: other overrides of the scene's ``simulation:`` block for every replay (e.g. ``gel_resolution``).
-        profile: parameters stepped per law before the comparison, those the scene has (empty: each law replayed
-            once at ``values``).
-        n_steps: Levenberg-Marquardt steps of each law (:data:`STEPS`).
+        profile: parameters stepped per law before the comparison, those the scene has (empty: each law compared at
+            ``values``).
         step_radius: largest change of each search coordinate in a law's step (:data:`STEP_RADIUS`).
         null_sigmas: the margin in standard deviations of the delta-BIC under the null (0: the smaller cost wins).
         gain_prior: the sensor gains refitted in closed form to every replay within this prior
@@ -313,18 +403,13 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
     if len(laws) != 2:
         raise ValueError(f"choose_gel_law: compare two gel laws, got {list(laws)}")
     values = dict(values or {})
-    cost: dict[str, float] = {}
-    rms: dict[str, dict[str, float]] = {}
-    fitted: dict[str, dict[str, float]] = {}
-    residual: dict[str, np.ndarray] = {}
-    gains: dict[str, dict[str, float]] = {}
-    steps: dict[str, list[float]] = {}
     present = [ch for ch in channels if ch in evidence.channels_present]
     if not present:
         raise ValueError(f"choose_gel_law: the recording has none of the channels {list(channels)}")
     scene_law = (scene_dict_for(evidence, None, simulation).get("simulation") or {}).get(
         "gel_element", SIMULATION_KEYS["gel_element"])
     reference = scene_law if scene_law in laws else laws[0]
+    steps: dict[str, LawStep] = {}
     model = None
     for law in laws:
         model = ObservationModel(evidence, dt=dt, t_max=t_max, arch=arch, channels=present,
@@ -336,29 +421,63 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
         held = {n: v for n, v in values.items() if n not in profile}
         if held:
             model.set_nominal(held)
-        fitted_names = [n for n in profile if n in model.simulation().parameter_names]
-        if fitted_names:
-            fitted[law], prediction, steps[law] = law_steps(
-                model, fitted_names, {n: values[n] for n in fitted_names if n in values}, n_steps, step_radius)
-        else:
-            prediction = model.predict(model.simulate(values))
-        found = None if model.gain_profile is None else model.gain_profile.calibration_of(prediction)
-        if found is not None:
-            gains[law] = {k: float(v) for k, v in found[1].items()}
-        rms[law] = whitened_rms(model, prediction, present)
-        residual[law] = _whitened(model, prediction, present)
-        cost[law] = float(residual[law] @ residual[law])
+        names = [n for n in profile if n in model.simulation().parameter_names] or [
+            n for n in PROFILED if n in model.simulation().parameter_names][:1]
+        compared, rows = compared_rows(model, present)
+        steps[law] = law_step(model, names, {n: values[n] for n in names if n in values}, rows,
+                              stepped=profile, radius=step_radius)
+    return decide(steps, reference, model, compared, gain_prior, null_sigmas)
+
+
+def _with_law(model: ObservationModel, law: str) -> ObservationModel:
+    """A copy of the tactile ``model`` (its scene, recording, step, channels, backend) whose gel follows ``law``,
+    with ``model``'s nominal values, drive, sensor calibration and its profile, marker rest positions, rows left out
+    and channel scales."""
+    out = ObservationModel(model.evidence, scene=model.scene, dt=model.dt, t_max=model.t_max,
+                           channels=list(model.channels), simulation={"gel_element": law}, arch=model.arch)
+    changed = {n: v for n in model.simulation().parameter_names
+               if (v := model.parameter_value(n)) != out.parameter_value(n)}
+    out.set_nominal({**changed, **dict.fromkeys(SENSOR_PARAMETERS, model.nominal_normal_offset)})
+    out.set_drive_stiffness(model.drive_stiffness, model.drive_damping)
+    out.sensor_calibration, out.marker_rest = model.sensor_calibration, model.marker_rest
+    out.row_mask = None if model.row_mask is None else dict(model.row_mask)
+    out.sigma_scale = None if model.sigma_scale is None else dict(model.sigma_scale)
+    if model.gain_profile is not None:
+        out.gain_profile = type(model.gain_profile)(out, model.gain_profile.prior)
+    return out
+
+
+def choose_at_start(model: ObservationModel, names: Sequence[str], extra: Sequence[str] = (),
+                    made: TangentReplay | None = None, *, laws: Sequence[str] = GEL_LAWS,
+                    channels: Sequence[str] = TACTILE, gain_prior: GainPrior = GainPrior(),
+                    step_radius: float = STEP_RADIUS, null_sigmas: float = NULL_SIGMAS
+                    ) -> tuple[GelLawChoice, ObservationModel, TangentReplay | None]:
+    """The gel law chosen at a fit's start (``thinshell sysid --gel-element auto``): ``model`` replays the scene's law
+    (the reference), calibrated (its nominal values, drive, sensor gains and their profile, rows left out); its
+    start replay with the tangents of the fit's ``names`` and ``extra`` (:func:`sysid.fit.joint_tangent_names`) is
+    ``made`` where the calibration made it (else one is made). The other law's model is ``model``'s with that law
+    and the same nominal values, drive, sensor and rows; it makes the same replay with tangents. Each law takes one
+    :func:`law_step` of :data:`PROFILED` on its tangents, and :func:`decide` chooses. Added cost over a fit at the
+    scene's law: the other law's replay with tangents (which a fit with that law takes as its first evaluation).
+
+    Returns:
+        ``(choice, model, made)``: the choice, the chosen law's model and its start replay with tangents (to hand to
+        :func:`sysid.fit.fit`; None: none made).
+
+    Raises:
+        ValueError: not two laws, or none of ``channels`` among the model's.
+        CalibrationError: a law's start replay diverged.
+    """
+    if len(laws) != 2:
+        raise ValueError(f"choose_at_start: compare two gel laws, got {list(laws)}")
+    compared, rows = compared_rows(model, channels)
+    if not compared:
+        raise ValueError(f"choose_at_start: the model replays none of the channels {list(channels)}")
+    scene_law = (model.scene.get("simulation") or {}).get("gel_element", SIMULATION_KEYS["gel_element"])
+    reference = scene_law if scene_law in laws else laws[0]
     other = next(law for law in laws if law != reference)
-    ranked = sorted(cost, key=cost.get)
-    margin = cost[ranked[1]] - cost[ranked[0]]
-    null_sd, decided = math.nan, True
-    if ranked[0] == other:
-        null_sd = null_spread(residual[other], residual[reference] - residual[other], _residual_times(model, present),
-                              residual_bin_s(model))
-        beyond = {law: beyond_prior(gains.get(law, {}), gain_prior) for law in laws} if gain_prior else {}
-        decided = margin > null_sigmas * null_sd and beyond.get(other, 0.0) <= beyond.get(reference, 0.0)
-    else:
-        beyond = {}
-    return GelLawChoice(chosen=other if ranked[0] == other and decided else reference, cost=cost, rms=rms,
-                        margin=margin, channels=tuple(present), reference=reference, fitted=fitted,
-                        null_sd=null_sd, decided=decided, gains=gains, steps=steps, beyond_prior=beyond)
+    models = {reference: model, other: _with_law(model, other)}
+    steps = {law: law_step(m, names, {}, rows, extra=extra, made=made if law == reference else None,
+                           radius=step_radius) for law, m in models.items()}
+    choice = decide(steps, reference, model, compared, gain_prior, null_sigmas)
+    return choice, models[choice.chosen], steps[choice.chosen].made

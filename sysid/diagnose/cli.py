@@ -112,9 +112,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the gel's element and law in the replays (default: the scene's, else stable_neohookean; "
                         "green_strain: Saint Venant-Kirchhoff, the Green-strain law whose pressed gel softens while it "
                         "is sheared, docs/known_answers.md; modified_stvk: its shear with a volumetric energy in ln J "
-                        "that keeps J > 0 (no collapse in deep presses; not in auto's comparison); auto: each recording's choice between the two laws by "
-                        "delta-BIC, each law's modulus, friction and stick speed moved first by one Levenberg-Marquardt step on its start replay's tangents, sensor gains refitted (a replay with tangents and a plain one a law), the scene's "
-                        "law kept unless the other wins beyond twice the delta-BIC's spread under the null; reported in "
+                         "that keeps J > 0 (no collapse in deep presses; not in auto's comparison); auto: each recording's choice between the two laws by "
+                        "delta-BIC, each law's modulus, friction and stick speed moved first by one Levenberg-Marquardt step "
+                        "predicted on its start replay's tangents, sensor gains refitted (a replay with tangents a law), "
+                        "the scene's law kept unless the other wins beyond twice the delta-BIC's spread under the "
+                        "null; reported in "
                         "extra.pipeline.gel_law)")
     p.add_argument("--fit-max-nfev", type=int, default=8, help="function evaluations of the calibration's fit")
     p.add_argument("--arch", choices=("numpy", "cpu", "cuda"), default="cpu",

@@ -33,8 +33,9 @@ apply to that stage.
 
 ``--gel-element auto`` chooses the gel's law per recording before either stage (:func:`with_gel_law`,
 :func:`sysid.gel_law.choose_gel_law`: each law's modulus, friction and stick speed moved from the scene's values by one
-Levenberg-Marquardt step on a replay's tangents, sensor gains refitted, a replay with tangents and a plain one a law, the scene's law kept unless the other's whitened sum of squares is smaller beyond twice its spread
-under the null); the choice is in ``extra.pipeline.gel_law``, and both stages replay that law.
+Levenberg-Marquardt step predicted on a replay's tangents, sensor gains refitted, a replay with tangents a law, the
+scene's law kept unless the other's whitened sum of squares is smaller beyond twice its spread under the null); the
+choice is in ``extra.pipeline.gel_law``, and both stages replay that law.
 """
 
 from __future__ import annotations
