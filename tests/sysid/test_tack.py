@@ -56,6 +56,26 @@ def test_a_lift_with_a_concealed_tack_gets_it_in_its_nominal_model(lift_bag):
     rows = _sheet_rms(model, TRUE_PARAMS)  # the nominal now carries the tack
     assert np.sum(rows > 2.0) <= 2 and np.sqrt(np.mean(rows ** 2)) < 0.3 * np.sqrt(np.mean(without ** 2))
     assert decision.summary()["on"] and decision.summary()["peel_s"] == pytest.approx(decision.peel_s)
+    assert decision.margin.kept and decision.margin.delta_bic > 2.0 * decision.margin.null_sd > 0.0
+
+
+def test_the_tack_margin_keeps_a_real_tack_and_not_a_difference_the_noise_makes(lift_bag):
+    """The information criterion with the null margin (sysid.tack.tack_margin, gel_law's rule): predictions that
+    differ from the recording's noise-free card only by noise (white, 1 sigma, another seed) and by a 0.3-sigma shift
+    are not kept, however many rows; a 3-sigma shift is."""
+    from sysid.tack import tack_margin
+
+    bag, _, _ = lift_bag
+    model = ObservationModel(load_evidence(bag), dt=0.01)
+    data = np.asarray(model.data("sheet_points"), dtype=float)
+    sigma = np.asarray(model.sigma["sheet_points"], dtype=float)
+    rng = np.random.default_rng(21)
+    rows = np.ones(data.shape[0], bool)
+    truth = data - rng.normal(size=data.shape) * sigma  # the data's own noise is what the null allows
+    for shift, kept in [(0.0, False), (0.3, False), (3.0, True)]:
+        worse = truth + shift * sigma
+        margin = tack_margin(model, truth, worse, data, sigma, rows)
+        assert margin.kept is kept, (shift, margin)
 
 
 def test_a_press_slide_gets_no_tack(tmp_path):
@@ -96,16 +116,16 @@ in shear grows as the card arches), let go, wait."""
 
 @pytest.fixture(scope="module")
 def lift_fold(tmp_path_factory):
-    """This simulator's lift-and-fold with a concealed compliant tack (bonds of 400 card weights, k_t 1 N/m a pair,
-    let go at 0.27 s), its model and the tack's decision at the true materials."""
-    from sysid.tack import LAYER_BOND_WEIGHTS, SHEAR_STIFFNESS_SETTING
+    """This simulator's lift-and-fold with a concealed compliant tack (bonds of 400 card weights, isotropic springs of
+    k_t 1 N/m a pair, let go at 0.27 s), its model and the tack's decision at the true materials."""
+    from sysid.tack import LAYER_BOND_WEIGHTS, LAYER_NORMAL_RATIO, NORMAL_RATIO_SETTING, SHEAR_STIFFNESS_SETTING
 
     scene = scene_with(TRUE_PARAMS)
     dt = float(scene["dt"])
     w = adhesion_weight_scale(Simulation(load_scene(scene), dt=dt).model)
     targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), LIFT_FOLD)
     truth = {**TRUE_PARAMS, ADHESION_PARAMETER: LAYER_BOND_WEIGHTS * w, RELEASE_TIME_SETTING: 27 * dt,
-             SHEAR_STIFFNESS_SETTING: K_TRUE}
+             SHEAR_STIFFNESS_SETTING: K_TRUE, NORMAL_RATIO_SETTING: LAYER_NORMAL_RATIO}
     bag = write_bag(tmp_path_factory.mktemp("fold") / "bag", scene,
                     add_noise(simulate_streams(scene, truth, targets), seed=9))
     model = ObservationModel(load_evidence(bag), dt=0.01)
