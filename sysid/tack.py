@@ -19,13 +19,15 @@ the nominal model the tack wherever the recording shows the card carried:
 2. the diagnosis' tack (:func:`sysid.diagnose.peel.tack_with_peel`): bonds of strength
    :data:`~sysid.diagnose.candidates.ADHESION_PROBE_WEIGHTS` card weights a pair, released at the peel read
    from the recording, kept where its replay follows the recorded sheet points up to the peel better than
-   the replay without it (a buckled card that springs up under a lifting pad rises on its own). Two
-   replays. The bonds' strength is not fitted: above the card's weight the card follows the gel whatever
+   the replay without it by more than the null allows (:func:`tack_margin`: the delta-BIC beyond
+   :data:`sysid.gel_law.NULL_SIGMAS` of its spread under the null, as the gel law is chosen; a buckled card that
+   springs up under a lifting pad rises on its own). Two replays. The bonds' strength is not fitted: above the card's weight the card follows the gel whatever
    the strength (:func:`sysid.diagnose.candidates.adhesion_weight_scale`).
 
-3. the tack's compliant shear layer (:func:`fit_shear_layer`; ``nominal_tack(shear_layer=False)`` leaves it out):
+3. the tack's compliant layer (:func:`fit_shear_layer`; ``nominal_tack(shear_layer=False)`` leaves it out):
    normal-only bonds let the card slide along the gel, where a real gel's adhesive layer holds it in shear with a
-   finite stiffness. With the materials held at the start, the layer's ``k_t`` (N/m per bonded pair, bonds of
+   finite stiffness; the layer's bonds are isotropic springs (:data:`LAYER_NORMAL_RATIO`), so the bonded patch also
+   tilts under the card's bending moment instead of holding the card at the gel's slope. With the materials held at the start, the layer's ``k_t`` (N/m per bonded pair, bonds of
    :data:`LAYER_BOND_WEIGHTS` card weights held to the recorded peel) is searched in log on the sheet points
    before the peel (at most :data:`SHEAR_MAX_REPLAYS` replays), and kept where it follows the carried card better
    than the normal-only bonds. Its sigma counts one datum per correlation time of the card's residual
