@@ -193,3 +193,24 @@ def test_rows_per_datum_is_the_residual_correlation_time():
         ar[i] = 0.8 * ar[i - 1] + np.sqrt(1 - 0.8 ** 2) * e[i]
     assert 7 <= _rows_per_datum(ar) <= 11
     assert _rows_per_datum(e) == 1
+
+
+def test_the_reference_press_slide_gets_no_tack_and_its_lift_shows_the_card_carried():
+    """The independent engine's recordings: nominal_s101 (press-slide) shows no carried card, so the tack is not
+    part of its model and no replay is made for it; nominal_s109 (lift-and-fold, tack on 1.63-3.82 s) shows the card
+    carried by the gel through the lift and the fold (1.90-3.84 s: the falling card is within the bonds'
+    opening of the gel for two rows after the peel)."""
+    from tests.sysid.conftest import reference_bag
+
+    press = ObservationModel(load_evidence(reference_bag("nominal_s101")), dt=0.01)
+
+    def no_replay(*args, **kwargs):
+        raise AssertionError("the tack's decision replayed a recording that shows no carried card")
+
+    press.simulate = no_replay
+    decision = nominal_tack(press)
+    assert not decision.on and decision.carried_rows == 0 and decision.margin is None, decision.why
+    lift = ObservationModel(load_evidence(reference_bag("nominal_s109")), dt=0.01)
+    rows = carried_rows(lift, 1.25e-3)
+    t = (np.asarray(lift.evidence.t_ns["sheet_points"]) - lift.evidence.start_ns) * 1e-9
+    assert rows.sum() >= 150 and t[rows].min() > 1.63 and t[rows].max() < 3.87  # 195 rows, 1.90-3.84 s
