@@ -7,7 +7,7 @@ incremental potential (and, for the viscoelastic gel and the adhesion bonds, a s
 |---|---|---|---|
 | ``stiction`` | :mod:`.stiction` | ``mu_s / mu_k - 1`` | ``stiction.slip_scale`` (2: eps_s / eps_u) |
 | ``gel_viscoelasticity`` | :mod:`.gel_viscoelasticity` | Maxwell / equilibrium stiffness | ``gel_viscoelasticity.tau`` (0.3 s) |
-| ``adhesion`` | :mod:`.adhesion` | bond strength per pair, N | ``adhesion.delta`` (0.25 mm), ``adhesion.reach`` (0.01 delta: bonds form in contact), ``adhesion.release`` (5 delta: a bonded vertex keeps its pair up to it), ``adhesion.release_time`` (s; default never: from it on every bond is broken, the peel) |
+| ``adhesion`` | :mod:`.adhesion` | bond strength per pair, N | ``adhesion.delta`` (0.25 mm), ``adhesion.reach`` (0.01 delta: bonds form in contact), ``adhesion.release`` (5 delta: a bonded vertex keeps its pair up to it), ``adhesion.release_time`` (s; default never: from it on every bond is broken, the peel), ``adhesion.shear_stiffness`` (N/m a pair: the compliant layer's k_t), ``adhesion.normal_ratio`` (the layer's normal spring over k_t, in place of the cohesive law; release at ``beta / k_n``) |
 | ``anisotropic_bending`` | :mod:`.anisotropic_bending` | grain anisotropy, abs < 1 | |
 | ``damping`` | :mod:`.sheet_damping` | drag on the sheets' vertices, 1/s | |
 | ``gel_damping`` | :mod:`.gel_damping` | the gels' Kelvin-Voigt (stiffness-proportional) time constant, s | |

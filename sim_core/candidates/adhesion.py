@@ -64,6 +64,19 @@ a linear tangential spring on the anchored bonds,
 quadratic in x: gradient ``k_t P d`` and Hessian ``k_t P`` per pair, PSD. The bond breaks at the normal release
 opening or the peel (``adhesion.release_time``), not in shear. ``k_t`` is a parameter of the recording: the fit
 reads it from the carried card (:mod:`sysid.tack`).
+
+Normal compliance (``adhesion.normal_ratio`` ``rho``, with the layer): the layer's bonds are linear springs along the
+normal too, stiffness ``k_n = rho k_t`` per pair, in place of the cohesive law,
+
+    E = sum_k k_n max(s_k, 0)^2 / 2 + k_t t_k^2 / 2,
+
+so at ``rho = 1`` each bond is an isotropic spring between the gel vertex and its anchored sheet point (held off by
+the contact offset), gradient ``k_n max(s, 0) n + k_t P d``, Hessian ``k_n [s > 0] n n^T + k_t P``. A bond stiff along
+the normal (the cohesive law's ``e beta / delta``, ~1,100 N/m a pair at the layer's strength against ``k_t`` ~3 N/m)
+holds the carried patch flat on the gel face, so the card leaves the pad at the gel's slope whatever it carries; a
+real adhesive layer (fibrils, a soft film) stretches along the normal as it does in shear, and lets the patch tilt
+under the card's bending moment. The bond then breaks where its normal force reaches ``beta`` (release opening
+``beta / k_n``, :meth:`sim_core.candidates.hook.CandidateHook.setting`) or at the peel.
 """
 
 from __future__ import annotations
@@ -235,10 +248,12 @@ class LaggedAdhesion:
         delta_t: tangential length ``delta_t`` of the coupled law in m (> 0), or None: normal bonds only.
         k_shear: tangential stiffness ``k_t`` of the compliant layer in N/m per pair (>= 0; module docstring,
             shear compliance), or None. Exclusive with ``delta_t``.
+        normal_ratio: ``rho``, the layer's normal over its shear stiffness (> 0; module docstring, normal
+            compliance), or None: the cohesive normal law. Needs ``k_shear``.
 
     Raises:
         ConfigError: negative / non-finite ``beta`` or ``k_shear``, non-positive ``delta``, ``delta_t`` or ``eps``,
-            both ``delta_t`` and ``k_shear``, bad shapes.
+            both ``delta_t`` and ``k_shear``, ``normal_ratio`` non-positive or without ``k_shear``, bad shapes.
     """
 
     parameter_names: tuple[str, ...] = ("beta",)
@@ -249,7 +264,8 @@ class LaggedAdhesion:
     adjoint take a candidate's parameters through it (:meth:`sim_core.adjoint.StepLinearization.parameter_rhs`)."""
 
     def __init__(self, vertices: np.ndarray, weights: np.ndarray, normal: np.ndarray, eps: float,
-                 beta: float, delta: float, delta_t: float | None = None, k_shear: float | None = None) -> None:
+                 beta: float, delta: float, delta_t: float | None = None, k_shear: float | None = None,
+                 normal_ratio: float | None = None) -> None:
         beta, delta, eps = float(beta), float(delta), float(eps)
         if not (np.isfinite(beta) and beta >= 0):
             raise ConfigError(f"LaggedAdhesion: bond strength beta must be finite and >= 0 N, got {beta}")
@@ -265,6 +281,10 @@ class LaggedAdhesion:
         if k_shear is not None and delta_t is not None:
             raise ConfigError("LaggedAdhesion: give the coupled law's delta_t or the compliant layer's k_shear, "
                               "not both")
+        if normal_ratio is not None and not (k_shear is not None and np.isfinite(normal_ratio) and normal_ratio > 0):
+            raise ConfigError(f"LaggedAdhesion: normal_ratio (the layer's normal over shear stiffness) must be finite, "
+                              f"> 0 and come with k_shear, got {normal_ratio} with k_shear {k_shear}")
+        self.normal_ratio = None if normal_ratio is None else float(normal_ratio)
         self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1, 4)
         p = self.vertices.shape[0]
         self.weights = np.asarray(weights, dtype=float).reshape(p, 4)
@@ -304,7 +324,10 @@ class LaggedAdhesion:
     def energy(self, x: np.ndarray) -> float:
         """Adhesion energy in J (0 when every pair is pressed without shear, negative of the work of separation)."""
         r, _, _, g = self._terms(x)
-        out = float(self.beta * self.delta * np.e * np.sum(1.0 - (1.0 + r) * g))
+        if self.normal_ratio is None:
+            out = float(self.beta * self.delta * np.e * np.sum(1.0 - (1.0 + r) * g))
+        else:
+            out = 0.5 * self.normal_ratio * self.k_shear * float(np.sum((r * self.delta) ** 2))
         if self.k_shear is not None:
             dt = self._shear_opening(x)
             out += 0.5 * self.k_shear * float(np.einsum("kd,kd->", dt, dt))
@@ -315,10 +338,21 @@ class LaggedAdhesion:
         d = self._d(x)
         return d - np.einsum("kd,kd->k", d, self.normal)[:, None] * self.normal
 
+    def _normal_force(self, r: np.ndarray, beta: float, k_shear: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """The pair's normal force ``f`` (N) and its slope in the opening ``df/ds`` (N/m) at ``r = max(s, 0) / delta``
+        (``(p,)`` each; the coupled law's shear factor aside): the cohesive law's ``beta e r e^-r``, or the layer's
+        normal spring ``rho k_t max(s, 0)`` (module docstring, normal compliance)."""
+        open_ = (r > 0).astype(float)
+        if self.normal_ratio is not None:
+            k_n = self.normal_ratio * float(k_shear or 0.0)
+            return k_n * r * self.delta, k_n * open_
+        g = np.exp(-r)
+        return beta * np.e * r * g, beta * np.e * (1.0 - r) * g * open_ / self.delta
+
     def _gradient_with(self, x: np.ndarray, beta: float, k_shear: float | None = None) -> np.ndarray:
         r, dt, _, g = self._terms(x)
         # dE/dd = beta e r g n + beta delta e (1 + r) g 2 P d / delta_t^2
-        f = beta * np.e * r * g
+        f = beta * np.e * r * g if self.delta_t is not None else self._normal_force(r, beta, k_shear)[0]
         gd = f[:, None] * self.normal
         if self.delta_t is not None:
             gd = gd + (2.0 * beta * self.delta * np.e * (1.0 + r) * g / self.delta_t ** 2)[:, None] * dt
@@ -343,9 +377,9 @@ class LaggedAdhesion:
         A = self.beta * self.delta * np.e
         open_ = (r > 0).astype(float)
         gn = open_[:, None] * n / self.delta  # grad r
-        nn = np.einsum("ki,kj->kij", gn, gn)
-        H = (A * (1.0 - r) * g)[:, None, None] * nn
+        H = self._normal_force(r, self.beta, self.k_shear)[1][:, None, None] * np.einsum("ki,kj->kij", n, n)
         if self.delta_t is not None:
+            H = (A * (1.0 - r) * g)[:, None, None] * np.einsum("ki,kj->kij", gn, gn)
             gT = 2.0 * dt / self.delta_t ** 2  # grad of t^2 / delta_t^2
             P = np.eye(3)[None] - np.einsum("ki,kj->kij", n, n)
             H = H + (A * -r * g)[:, None, None] * (np.einsum("ki,kj->kij", gn, gT) + np.einsum("ki,kj->kij", gT, gn))
@@ -370,7 +404,8 @@ class LaggedAdhesion:
         their triangle's (a new pair whose nearest point lies on an edge or a vertex, where ``n`` is along
         ``d(x^n)`` and the weights move with ``x^n`` too) and the coupled law's (``delta_t``) are held (zeros),
         as the contact pair set is. The pair's gradient in ``d`` is ``f(r) n + k_t P d`` (``f = beta e r e^-r``,
-        ``r = max(n.d - eps, 0) / delta``), so ``d/dn = (f'(r) open / delta) n d^T + f I - k_t (n d^T + (n.d) I)``.
+        ``r = max(n.d - eps, 0) / delta``; the layer's normal spring ``f = rho k_t max(n.d - eps, 0)``), so
+        ``d/dn = (df/ds) n d^T + f I - k_t (n d^T + (n.d) I)``.
         Without this column the forward tangents of a carried card were 26-40 % off central differences after
         two steps of lift (tests/sim_core/test_adhesion_tangents.py, session 55)."""
         p = self.vertices.shape[0]
@@ -393,9 +428,7 @@ class LaggedAdhesion:
         dc = np.concatenate([_skew(e2) - _skew(e1), -_skew(e2), _skew(e1)], axis=2)  # dc/d(a, b, c), (p, 3, 9)
         dn_d = np.einsum("kd,kd->k", d, n)
         r = np.maximum(dn_d - self.eps, 0.0) / self.delta
-        open_ = (r > 0).astype(float)
-        f = self.beta * np.e * r * np.exp(-r)
-        fp = self.beta * np.e * (1.0 - r) * np.exp(-r) * open_ / self.delta
+        f, fp = self._normal_force(r, self.beta, self.k_shear)
         nd = np.einsum("ki,kj->kij", n, d)
         A = fp[:, None, None] * nd + f[:, None, None] * np.eye(3)[None]
         if self.k_shear:
@@ -427,8 +460,9 @@ class LaggedAdhesion:
         return out
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
-        """d(dE/dx)/d ``name`` (linear in either): ``"beta"`` dimensionless force per N, ``"k_shear"`` m
-        (the shear openings ``P d`` scattered), shape ``(n, 3)``.
+        """d(dE/dx)/d ``name`` (linear in either): ``"beta"`` dimensionless force per N (zero with the layer's
+        normal spring), ``"k_shear"`` m (the shear openings ``P d``, plus ``rho max(s, 0) n`` with the normal spring,
+        scattered), shape ``(n, 3)``.
 
         Raises:
             KeyError: ``name`` not in :attr:`parameter_names`.
@@ -437,6 +471,8 @@ class LaggedAdhesion:
             return self._gradient_with(x, 1.0)
         if name == "k_shear" and name in self.parameter_names:
             shear = self._shear_opening(x)
+            if self.normal_ratio is not None:
+                shear = shear + (self.normal_ratio * np.maximum(self.opening(x), 0.0))[:, None] * self.normal
             return scatter_gradient(x.shape[0], self.vertices, self.weights[:, :, None] * shear[:, None, :])
         raise KeyError(f"LaggedAdhesion has no parameter {name!r}; known: {self.parameter_names}")
 

@@ -119,6 +119,8 @@ class CandidateHook:
             return ADHESION_REACH_FRACTION * self.setting("adhesion.delta")
         if name == "adhesion.shear" and v is None:
             return math.inf
+        if name == "adhesion.release" and v is None and self._normal_stiffness():
+            return max(float(self.params.get("adhesion", 0.0)) / self._normal_stiffness(), self.setting("adhesion.reach"))
         if name == "adhesion.release" and v is None:
             return max(ADHESION_RELEASE_FRACTION * self.setting("adhesion.delta"), self.setting("adhesion.reach"))
         if name == "adhesion.release_time" and v is None:
@@ -129,6 +131,13 @@ class CandidateHook:
         """``adhesion.shear_stiffness`` in N/m per pair, None when the bonds have no compliant layer."""
         v = self.params.get("adhesion.shear_stiffness")
         return None if v is None else float(v)
+
+    def _normal_stiffness(self) -> float | None:
+        """The compliant layer's normal spring ``adhesion.normal_ratio * adhesion.shear_stiffness`` in N/m per pair,
+        None with the cohesive normal law (its bonds then release where that spring's force reaches the bond
+        strength: ``adhesion.release`` None = ``beta / k_n``)."""
+        ratio, k_t = self.params.get("adhesion.normal_ratio"), self._shear_stiffness()
+        return None if ratio is None or k_t is None else float(ratio) * k_t
 
     def peeled(self, state) -> bool:
         """Whether the adhesion bonds are gone at ``state`` (its time ``t`` s at or past
@@ -201,7 +210,8 @@ class CandidateHook:
                 v, w, n = anchored_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model),
                                          model.contact.eps, self.setting("adhesion.reach"), self.anchors(state))
             out.append(LaggedAdhesion(v, w, n, model.contact.eps, p["adhesion"], self.setting("adhesion.delta"),
-                                      None if math.isinf(shear) else shear, k_shear))
+                                      None if math.isinf(shear) else shear, k_shear,
+                                      self.params.get("adhesion.normal_ratio")))
         return out
 
     @staticmethod

@@ -14,7 +14,8 @@ CANDIDATE_NAMES = ("stiction", "gel_viscoelasticity", "adhesion", "anisotropic_b
 
 CANDIDATE_SETTINGS = {"stiction.slip_scale": 2.0, "gel_viscoelasticity.tau": 0.3, "adhesion.delta": 2.5e-4,
                       "adhesion.reach": None, "adhesion.release": None, "adhesion.release_time": None,
-                      "adhesion.shear": None, "adhesion.shear_stiffness": None}
+                      "adhesion.shear": None, "adhesion.shear_stiffness": None,
+                      "adhesion.normal_ratio": None}
 """Secondary settings and their defaults (``adhesion.reach`` None = ``ADHESION_REACH_FRACTION``
 ``adhesion.delta``, ``adhesion.release`` None = ``ADHESION_RELEASE_FRACTION`` ``adhesion.delta``;
 ``adhesion.shear`` None = no shear: the tangential length ``delta_t`` (m) of the anchored bonds' coupled
@@ -22,6 +23,9 @@ law (:mod:`sim_core.candidates.adhesion`, shear), the bonds hold the sheet's poi
 default a bond pulls along the normal only; ``adhesion.shear_stiffness`` None = no compliant layer: the tangential
 stiffness ``k_t`` (N/m per bonded pair) of anchored bonds that hold in shear with a linear spring beside the normal
 law (:mod:`sim_core.candidates.adhesion`, shear compliance; exclusive with ``adhesion.shear``);
+``adhesion.normal_ratio`` None = the layer's bonds pull along the normal with the cohesive law: else the compliant
+layer's bonds are linear springs along the normal too, of stiffness ``normal_ratio * k_t`` per pair (1: isotropic
+springs; the bonds' terms need ``adhesion.shear_stiffness`` with it; :mod:`sim_core.candidates.adhesion`, normal compliance);
 ``adhesion.release_time`` None = never: from that simulated time (s) on, every bond is broken and
 none forms, the peel of a gel whose tack is lost;
 :meth:`sim_core.candidates.hook.CandidateHook.setting`)."""

@@ -56,6 +56,28 @@ def test_a_lift_with_a_concealed_tack_gets_it_in_its_nominal_model(lift_bag):
     rows = _sheet_rms(model, TRUE_PARAMS)  # the nominal now carries the tack
     assert np.sum(rows > 2.0) <= 2 and np.sqrt(np.mean(rows ** 2)) < 0.3 * np.sqrt(np.mean(without ** 2))
     assert decision.summary()["on"] and decision.summary()["peel_s"] == pytest.approx(decision.peel_s)
+    assert decision.margin.kept and decision.margin.delta_bic > 2.0 * decision.margin.null_sd > 0.0
+
+
+def test_the_tack_margin_keeps_a_real_tack_and_not_a_difference_the_noise_makes(lift_bag):
+    """The information criterion with the null margin (sysid.tack.tack_margin, gel_law's rule): a tack whose replay
+    is the no-tack one's, or that one off by a random 0.3 sigma a point, is not kept; a tack whose replay is the
+    card's where the no-tack one is off by a steady 0.3 sigma (delta-BIC 263, 4.7 null sd) or 3 sigma
+    is."""
+    from sysid.tack import tack_margin
+
+    bag, _, _ = lift_bag
+    model = ObservationModel(load_evidence(bag), dt=0.01)
+    data = np.asarray(model.data("sheet_points"), dtype=float)
+    sigma = np.asarray(model.sigma["sheet_points"], dtype=float)
+    rng = np.random.default_rng(21)
+    rows = np.ones(data.shape[0], bool)
+    truth = data - rng.normal(size=data.shape) * sigma  # the data's own noise is what the null allows
+    jitter = rng.normal(size=data.shape) * sigma
+    for with_tack, without, kept in [(truth, truth, False), (truth + 0.3 * jitter, truth, False),
+                                     (truth, truth + 0.3 * sigma, True), (truth, truth + 3.0 * sigma, True)]:
+        margin = tack_margin(model, with_tack, without, data, sigma, rows)
+        assert margin.kept is kept, margin
 
 
 def test_a_press_slide_gets_no_tack(tmp_path):
@@ -96,16 +118,16 @@ in shear grows as the card arches), let go, wait."""
 
 @pytest.fixture(scope="module")
 def lift_fold(tmp_path_factory):
-    """This simulator's lift-and-fold with a concealed compliant tack (bonds of 400 card weights, k_t 1 N/m a pair,
-    let go at 0.27 s), its model and the tack's decision at the true materials."""
-    from sysid.tack import LAYER_BOND_WEIGHTS, SHEAR_STIFFNESS_SETTING
+    """This simulator's lift-and-fold with a concealed compliant tack (bonds of 400 card weights, isotropic springs of
+    k_t 1 N/m a pair, let go at 0.27 s), its model and the tack's decision at the true materials."""
+    from sysid.tack import LAYER_BOND_WEIGHTS, LAYER_NORMAL_RATIO, NORMAL_RATIO_SETTING, SHEAR_STIFFNESS_SETTING
 
     scene = scene_with(TRUE_PARAMS)
     dt = float(scene["dt"])
     w = adhesion_weight_scale(Simulation(load_scene(scene), dt=dt).model)
     targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), LIFT_FOLD)
     truth = {**TRUE_PARAMS, ADHESION_PARAMETER: LAYER_BOND_WEIGHTS * w, RELEASE_TIME_SETTING: 27 * dt,
-             SHEAR_STIFFNESS_SETTING: K_TRUE}
+             SHEAR_STIFFNESS_SETTING: K_TRUE, NORMAL_RATIO_SETTING: LAYER_NORMAL_RATIO}
     bag = write_bag(tmp_path_factory.mktemp("fold") / "bag", scene,
                     add_noise(simulate_streams(scene, truth, targets), seed=9))
     model = ObservationModel(load_evidence(bag), dt=0.01)
@@ -171,3 +193,24 @@ def test_rows_per_datum_is_the_residual_correlation_time():
         ar[i] = 0.8 * ar[i - 1] + np.sqrt(1 - 0.8 ** 2) * e[i]
     assert 7 <= _rows_per_datum(ar) <= 11
     assert _rows_per_datum(e) == 1
+
+
+def test_the_reference_press_slide_gets_no_tack_and_its_lift_shows_the_card_carried():
+    """The independent engine's recordings: nominal_s101 (press-slide) shows no carried card, so the tack is not
+    part of its model and no replay is made for it; nominal_s109 (lift-and-fold, tack on 1.63-3.82 s) shows the card
+    carried by the gel through the lift and the fold (1.90-3.84 s: the falling card is within the bonds'
+    opening of the gel for two rows after the peel)."""
+    from tests.sysid.conftest import reference_bag
+
+    press = ObservationModel(load_evidence(reference_bag("nominal_s101")), dt=0.01)
+
+    def no_replay(*args, **kwargs):
+        raise AssertionError("the tack's decision replayed a recording that shows no carried card")
+
+    press.simulate = no_replay
+    decision = nominal_tack(press)
+    assert not decision.on and decision.carried_rows == 0 and decision.margin is None, decision.why
+    lift = ObservationModel(load_evidence(reference_bag("nominal_s109")), dt=0.01)
+    rows = carried_rows(lift, 1.25e-3)
+    t = (np.asarray(lift.evidence.t_ns["sheet_points"]) - lift.evidence.start_ns) * 1e-9
+    assert rows.sum() >= 150 and t[rows].min() > 1.63 and t[rows].max() < 3.87  # 195 rows, 1.90-3.84 s

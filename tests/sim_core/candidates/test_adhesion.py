@@ -171,15 +171,19 @@ def test_anchored_bonds_hold_their_sheet_point_until_the_shear_release():
     assert anchored_after(far, gel, tri, EPS, reach, release, release_t, anchors)[0].size == 0
 
 
-@pytest.mark.parametrize("shift", [(0.3, 0.2, 0.5), (1.0, -0.4, 0.0), (0.2, 0.1, 2.0), (0.5, 0.5, -0.2)])
-def test_compliant_layer_gradient_hessian_and_stiffness_derivative_match_finite_differences(shift):
-    """The compliant layer (normal law + k_t |P d|^2 / 2): gradient and Hessian against central differences of
-    the energy / gradient, the projected Hessian PSD, and d(grad E)/d k_t against a central difference in k_t."""
+@pytest.mark.parametrize("ratio", [None, 0.5, 1.0, 4.0])
+@pytest.mark.parametrize("shift", [(0.3, 0.2, 0.5), (1.0, -0.4, 0.0), (0.2, 0.1, 2.0), (0.5, 0.5, -0.2),
+                                   (1.0, -0.4, 3.0)])
+def test_compliant_layer_gradient_hessian_and_stiffness_derivative_match_finite_differences(shift, ratio):
+    """The compliant layer (normal law + k_t |P d|^2 / 2; with ``ratio`` the normal spring ``ratio k_t max(s, 0)^2 /
+    2`` in place of the cohesive law): gradient and Hessian against central differences of the energy / gradient,
+    the projected Hessian PSD, and d(grad E)/d k_t (both springs scale with it) against a central difference in k_t;
+    with the normal spring the bond strength has no column."""
     x, v, w, n = _anchored_pair(np.asarray(shift) * DELTA)
     k = 3.0
 
     def bonds(k_t):
-        return LaggedAdhesion(v, w, n, EPS, beta=0.2, delta=DELTA, k_shear=k_t)
+        return LaggedAdhesion(v, w, n, EPS, beta=0.2, delta=DELTA, k_shear=k_t, normal_ratio=ratio)
 
     ad = bonds(k)
     x = x + np.random.default_rng(7).normal(scale=1e-7, size=x.shape)
@@ -190,6 +194,7 @@ def test_compliant_layer_gradient_hessian_and_stiffness_derivative_match_finite_
     h = 1e-4
     fd = (bonds(k + h).gradient(x) - bonds(k - h).gradient(x)) / (2 * h)
     assert relative_error(ad.parameter_gradient(x, "k_shear"), fd) < 1e-8
+    assert ratio is None or not ad.parameter_gradient(x, "beta").any()
 
 
 def test_compliant_layer_is_a_linear_shear_spring_beside_the_normal_law():
@@ -209,3 +214,22 @@ def test_compliant_layer_is_a_linear_shear_spring_beside_the_normal_law():
         LaggedAdhesion(v, w, n, EPS, 0.2, DELTA, delta_t=DELTA, k_shear=k_t)
     with pytest.raises(ConfigError, match="k_shear"):
         LaggedAdhesion(v, w, n, EPS, 0.2, DELTA, k_shear=-1.0)
+
+
+def test_isotropic_layer_bond_is_a_linear_spring_to_its_anchor_in_every_direction():
+    """Known answer: with ``normal_ratio`` 1 an open bond (gel vertex lifted by s past the contact offset and slid by
+    t) pulls the gel back toward its anchored point held off by the offset with ``k_t (t, 0, s)`` (Hooke, any
+    opening: no softening), and a pressed one (s < 0) only in shear; the release opening is where that spring's
+    force reaches the bond strength (``beta / k_n``)."""
+    from sim_core.candidates.hook import CandidateHook
+
+    k_t = 2.5
+    for s, t in [(0.1, 0.0), (4.0, 1.0), (40.0, 10.0), (-0.5, 2.0)]:
+        x, v, w, n = _anchored_pair(np.array([t, 0.0, s]) * DELTA)
+        force_on_gel = -LaggedAdhesion(v, w, n, EPS, 0.2, DELTA, k_shear=k_t, normal_ratio=1.0).gradient(x)[0]
+        expected = -k_t * np.array([t, 0.0, max(s, 0.0)]) * DELTA
+        np.testing.assert_allclose(force_on_gel, expected, rtol=1e-12, atol=1e-18)
+    with pytest.raises(ConfigError, match="normal_ratio"):
+        LaggedAdhesion(v, w, n, EPS, 0.2, DELTA, normal_ratio=1.0)
+    hook = CandidateHook({"adhesion": 0.1, "adhesion.shear_stiffness": k_t, "adhesion.normal_ratio": 2.0})
+    assert hook.setting("adhesion.release") == pytest.approx(0.1 / (2.0 * k_t))
