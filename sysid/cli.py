@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "does not lower the cost (0: off; default: %(default)s)")
     p.add_argument("--stop-rms", type=float, default=STOP_RMS,
                    help="stop when an accepted step lowered the whitened RMS by less than this fraction "
-                        "(default: %(default)s = 0.05 %%; 0: off)")
+                        "(default: %(default)s = 0.001 %%; 0: off)")
     p.add_argument("--stop-robust-sigma", type=float, default=STOP_ROBUST_SIGMA,
                    help="stop once the Gauss-Newton step is below this fraction of the robust 1-sigma (--robust) in "
                         "every parameter (0: off; default: %(default)s)")
