@@ -87,11 +87,12 @@ coordinate.
 
 The step is the distance left to the optimum: the replays are smooth and the tangents exact, so a Gauss-Newton step
 is taken in full and lands where it said (nominal_s101 from the scene: every accepted step after the first within
-1 % of the step predicted, the next step 5-35 % of it; docs/benchmarks_log.md, session 56). Stopping leaves a bias of
-about 0.2 robust sigma (the HAC sigma; the reported one adds the nuisance part and is larger), so the reported
-2-sigma interval still covers the optimum's value with ``P(|Z + 0.2| < 2)`` = 95.0 % (95.4 % unbiased; 94.7 % for
-the step and a following 35 % of it), and the bias adds about 2 % to the sigma in quadrature (``sqrt(1 + 0.2^2)``).
-With the replays stopped at 1e-4 m/s the step near the optimum followed their noise, and the rule asked 0.1."""
+1 % of the step predicted, the next step 5-35 % of it; from +30 % one full step was followed by one 1.5x as long
+where the cost is flat to the replays' resolution, and :data:`SYSID_STOP_RMS` ended the fit; docs/benchmarks_log.md,
+session 56). Where consecutive steps shrink, stopping leaves a bias of about 0.2 robust sigma (the HAC sigma; the
+reported one adds the nuisance part and is larger), so the reported 2-sigma interval still covers the optimum's value
+with ``P(|Z + 0.2| < 2)`` = 95.0 % (95.4 % unbiased; 94.7 % for the step and a following 35 % of it), and the bias
+adds about 2 % to the sigma in quadrature (``sqrt(1 + 0.2^2)``)."""
 FIRST_STEP = 0.5
 """Default first trust region of ``thinshell sysid`` (:func:`fit` ``first_step``), in search-coordinate units: a
 factor e^0.5 = 1.65 on a log parameter, more than the 30 % a data sheet may be off, where least_squares' own
