@@ -566,7 +566,7 @@ class NewtonSolver:
                     # the update just solved for, taken in full (no line search: a step this small is in the
                     # quadratic region); a stalled stop keeps x (its update is round-off;
                     # SolverConfig.apply_last_update)
-                    step.last_update = d
+                    step.last_update, step.applied = d, True
                     accept(self.config, info, it, residual, reason)
                     return x + d3, H, projection, factorization
                 if not (guessed and it == 1):
@@ -681,7 +681,8 @@ class NewtonSolver:
         positions, the matrix forward tangents solve with (:mod:`sim_core.sensitivity`); valid until the next step.
 
         That is :attr:`last_factorization` where the step's last Newton matrix is that Hessian. Otherwise (a step
-        ended by the simplified Newton test holds the matrix of the iterate before ``x``; a projected matrix)
+        ended by the simplified Newton test or with its last update applied holds the matrix of the iterate before
+        ``x``; a projected matrix)
         the exact Hessian at ``x`` is assembled from the step's own terms (fused elastic kernels, contacts at
         ``x``) and Cholesky-factorised once, by an assembler and a solver of their own, so that the Newton
         loop's union pattern and PARDISO's ordering, and so the next steps, are those of a replay without
@@ -813,8 +814,10 @@ class NewtonSolver:
         energy into ``info``, and keep the adjoint's :class:`StepRecord` and factorisation."""
         model = self.model
         state_in, dt, x_n = step.state_in, step.dt, step.x_n
-        # a step ended by the simplified Newton test has the matrix of the iterate before x
-        exact = projection == "none" and not info.simplified_stops
+        # a step ended by the simplified Newton test or on an applied update has the matrix of the iterate before x:
+        # its tangents take the exact Hessian at x (exact_factorization), where the lagged friction's stick
+        # stiffness may differ on the scale of that last update
+        exact = projection == "none" and not info.simplified_stops and not step.applied
         contact_terms = self.contact.potentials(x, x_n, step.memory)
         self._check_asleep_unreached(contact_terms, x)
         self._last_contact_terms = contact_terms

@@ -95,7 +95,9 @@ class SolverConfig:
             error is second order: ``O(|d_k|^2)`` with the exact Hessian (the full step is the Newton step) and a
             contraction of ``|d_k|`` with a projected one. No line search (``|d_k| <= tol_velocity * dt``, the
             quadratic region, as for a guess already within the tolerance). The kept Newton matrix is that of
-            ``x_k`` (within ``|d_k|`` of the result, as with ``rate_stopping``). The simplified Newton test
+            ``x_k``; the step's record says so (``StepRecord.hessian_exact`` False), so the tangents and the
+            adjoint take the exact Hessian at the result ``x_k + d_k`` (``NewtonSolver.exact_factorization``:
+            the lagged friction's stick stiffness changes on the scale of ``d_k``). The simplified Newton test
             (``simplified_newton_check``) is then not run: its correction, solved with the previous iterate's
             matrix, is not second order where the lagged friction's stiffness changes between iterates (the
             press-slide card of tests/sim_core/test_applied_update.py, first pressed step: 9.4e-9 m off the

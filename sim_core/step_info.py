@@ -32,9 +32,10 @@ class StepRecord:
         hessian_upper: the upper triangle (CSR, sorted indices, ``(3 n, 3 n)``) of the constrained
             Newton matrix of the last iteration: the exact Hessian when it was positive definite,
             else the projected one. It is assembled at the last Newton iterate, which is ``x``
-            except when ``SolverConfig.rate_stopping`` ended the step on an update, or the
-            simplified Newton test (``SolverConfig.simplified_newton_check``) ended it: then at the
-            iterate before ``x``, within the Newton tolerance of ``x``. The full symmetric matrix is
+            except when ``SolverConfig.rate_stopping`` ended the step on an update, the step ended
+            with its last update applied (``SolverConfig.apply_last_update``), or the simplified
+            Newton test (``SolverConfig.simplified_newton_check``) ended it: then at the iterate
+            before ``x``, within the Newton tolerance of ``x``. The full symmetric matrix is
             :attr:`hessian`.
         free_dofs: free DoF mask, shape ``(3 n,)`` bool.
         asleep: the bodies held asleep during the step (``SolverConfig.sleeping``): their vertices are

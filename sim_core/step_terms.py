@@ -46,6 +46,8 @@ class StepTerms:
             evaluated at, and that energy.
         last_update: the Newton update (m, ``(3 n,)``) the stopping test measured at the accepted
             iterate (the ordinary or simplified correction), None when the step ended otherwise.
+        applied: the step ended at its last iterate plus ``last_update`` (``SolverConfig.apply_last_update``), so
+            the last Newton matrix is that of the iterate before the result, not the result's.
     """
 
     state_in: State
@@ -70,6 +72,7 @@ class StepTerms:
     loop_energy_x: np.ndarray | None = None
     loop_energy: float = 0.0
     last_update: np.ndarray | None = None
+    applied: bool = False
 
 
 class FreeDofs:

@@ -26,7 +26,7 @@ from sim_core.elastic import SOLID_ELEMENTS
 from sim_core.errors import ConfigError, ThinShellError
 from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
-from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA,
+from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_ROBUST_SIGMA, STOP_SIGMA, SYSID_STOP_RMS,
                        STOP_TRIAL_SIGMA)
 from sysid.fit_recording import FitOptions, fit_recording
 from sysid.gel_law import AUTO_LAW
@@ -59,9 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stop-trial-sigma", type=float, default=STOP_TRIAL_SIGMA,
                    help="stop when a trial step below this many scaled 1-sigma (sigma_scaled) in every parameter "
                         "does not lower the cost (0: off; default: %(default)s)")
-    p.add_argument("--stop-rms", type=float, default=STOP_RMS,
+    p.add_argument("--stop-rms", type=float, default=SYSID_STOP_RMS,
                    help="stop when an accepted step lowered the whitened RMS by less than this fraction "
-                        "(default: %(default)s = 0.05 %%; 0: off)")
+                        "(default: %(default)s = 0.001 %%; 0: off)")
     p.add_argument("--stop-robust-sigma", type=float, default=STOP_ROBUST_SIGMA,
                    help="stop once the Gauss-Newton step is below this fraction of the robust 1-sigma (--robust) in "
                         "every parameter (0: off; default: %(default)s)")

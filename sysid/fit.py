@@ -67,11 +67,32 @@ reported 1-sigma (scaled by the residual, ``sigma_scaled``) in every coordinate 
 cost."""
 STOP_RMS = 5.0e-4
 """Default RMS stop of :func:`fit`: the local phase ends at an accepted point that lowered the whitened
-RMS by less than 0.05 % from the previous accepted point."""
-STOP_ROBUST_SIGMA = 0.1
+RMS by less than 0.05 % from the previous accepted point: a coarse precision stop for fits without the robust step
+rule (the calibration's fits of the contact parameters; a replay stopped at 1e-4 m/s scatters by up to 6e-4 of its
+cost). ``thinshell sysid``, whose robust step rule (:data:`STOP_ROBUST_SIGMA`) decides where the fit is known well
+enough, stops on the RMS only at the replays' resolution: :data:`SYSID_STOP_RMS`."""
+SYSID_STOP_RMS = 1.0e-5
+"""Default RMS stop of ``thinshell sysid`` (:func:`fit` ``stop_rms``): a gain below 0.001 %, ten times the resolution
+of two replays' RMS, is a cost flat to the replays' resolution.
+
+A replay solved as sysid's are (:data:`sysid.observation.REPLAY_TOL_VELOCITY`) differs from one solved to 1e-8 m/s by
+1e-6 / 5e-6 / 3e-6 whitened RMS (markers / wrench / sheet points, per channel RMS 1.2-1.9) and its cost is converged
+to 1e-6 of itself (nominal_s101, docs/benchmarks_log.md, session 55), so the RMS of a replay is resolved to ~5e-7 of
+itself and a gain between two to ~1e-6. At :data:`STOP_RMS` a fit of replays this smooth stopped on a gain of 0.003 %
+with its Gauss-Newton step still 0.33 robust sigma (session 56)."""
+STOP_ROBUST_SIGMA = 0.2
 """Default robust stop of ``thinshell sysid`` (:func:`fit` ``stop_robust_sigma``): the local phase ends
-once the Gauss-Newton step is below 10 % of the robust 1-sigma (:mod:`sysid.covariance`) in every
-coordinate: the result is then known to a tenth of the uncertainty the fit reports for it."""
+once the Gauss-Newton step is below 20 % of the robust 1-sigma (:mod:`sysid.covariance`) in every
+coordinate.
+
+The step is the distance left to the optimum: the replays are smooth and the tangents exact, so a Gauss-Newton step
+is taken in full and lands where it said (nominal_s101 from the scene: every accepted step after the first within
+1 % of the step predicted, the next step 5-35 % of it; from +30 % one full step was followed by one 1.5x as long
+where the cost is flat to the replays' resolution, and :data:`SYSID_STOP_RMS` ended the fit; docs/benchmarks_log.md,
+session 56). Where consecutive steps shrink, stopping leaves a bias of about 0.2 robust sigma (the HAC sigma; the
+reported one adds the nuisance part and is larger), so the reported 2-sigma interval still covers the optimum's value
+with ``P(|Z + 0.2| < 2)`` = 95.0 % (95.4 % unbiased; 94.7 % for the step and a following 35 % of it), and the bias
+adds about 2 % to the sigma in quadrature (``sqrt(1 + 0.2^2)``)."""
 FIRST_STEP = 0.5
 """Default first trust region of ``thinshell sysid`` (:func:`fit` ``first_step``), in search-coordinate units: a
 factor e^0.5 = 1.65 on a log parameter, more than the 30 % a data sheet may be off, where least_squares' own
@@ -598,12 +619,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         stop_rms: also stop at an accepted point whose whitened RMS is lower than the previous
             accepted point's by less than this fraction (``1 - sqrt(S_k / S_k-1) < stop_rms`` with
             ``S = r.r / 2``): a relative-decrease criterion measured on the replays, at the scale of
-            their numerical noise. On the bundled bag the cost of points within 0.3 sigma of each
-            other scatters by about 6e-4 of its value (Newton tolerance, contact set changes), the
-            statistical 1-sigma is not resolvable below that, and the 3-parameter fit spent its last
-            5 replays after an accepted step that lowered the RMS by 0.03 % (the values then moved by
-            less than 2e-5 relative). A Gauss-Newton *predicted* decrease is no guide there: at the
-            point before the last real gain (0.25 % RMS) it predicted 0.04 %. None or 0: off.
+            their numerical resolution where a robust step rule decides (:data:`SYSID_STOP_RMS`, how it is
+            measured), a coarse precision stop where none does (:data:`STOP_RMS`). None or 0: off.
         warm_start: start the Newton solves of the local phase's replays from the best replay so
             far (:class:`FitProblem` ``warm_start``); each step still converges to the solver's
             tolerance. The global phase's replays start cold.

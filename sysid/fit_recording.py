@@ -32,7 +32,7 @@ from sysid.drive_calibration import fit_drive
 from sysid.evidence import load_evidence
 from sysid.gain_prior import GainPrior
 from sysid.gain_profile import GainProfile
-from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
+from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, STOP_ROBUST_SIGMA, STOP_SIGMA, SYSID_STOP_RMS, STOP_TRIAL_SIGMA, Evaluation,
                        FitResult, fit, joint_tangent_names)
 from sysid.gel_law import AUTO_LAW, choose_at_start
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
@@ -76,7 +76,8 @@ class FitOptions:
         max_time: wall-time budget in s (None: none).
         max_nfev: function evaluations of the local phase.
         stop_sigma, stop_trial_sigma, stop_rms, stop_robust_sigma: stopping rules of :func:`sysid.fit.fit`
-            (None: off; ``stop_robust_sigma`` default :data:`sysid.fit.STOP_ROBUST_SIGMA`).
+            (None: off; ``stop_rms`` default :data:`sysid.fit.SYSID_STOP_RMS`, ``stop_robust_sigma``
+            :data:`sysid.fit.STOP_ROBUST_SIGMA`).
         stop_trial_robust: the trial-step stop measured in the robust sigma where larger (:func:`sysid.fit.fit`).
         nuisance: ``(name, prior 1-sigma)`` pairs of fixed parameters whose uncertainty enters the robust
             sigma (:func:`sysid.fit.fit` ``nuisance``); None: :data:`sysid.fit.DEFAULT_NUISANCE` less the
@@ -169,7 +170,7 @@ class FitOptions:
     max_nfev: int = 30
     stop_sigma: float | None = STOP_SIGMA
     stop_trial_sigma: float | None = STOP_TRIAL_SIGMA
-    stop_rms: float | None = STOP_RMS
+    stop_rms: float | None = SYSID_STOP_RMS
     stop_robust_sigma: float | None = STOP_ROBUST_SIGMA
     stop_trial_robust: bool = True
     nuisance: tuple[tuple[str, float], ...] | None = None

@@ -92,12 +92,16 @@ slope gives +3. Solved to 1e-7 m/s the same pair differs by 2e-5 / 1.1e-4 (marke
 the cost is converged to 1e-6 of itself (docs/benchmarks_log.md, session 55, s55-49rest)."""
 
 REPLAY_APPLY_LAST_UPDATE = False
-"""Whether a replay step ends with its last Newton update applied (``SolverConfig.apply_last_update``). Applied, the
-same smoothness holds at 1e-5 m/s at ~15 % less a replay (docs/benchmarks_log.md, session 55, s55-49stop), but the
-step's kept Newton matrix is then that of the iterate before the result, and the tangents built on it are off where
-the lagged friction's stick stiffness changes on the scale of that last update: the contact.eps_v column of
-tests/sysid/test_calibration.py (eps_v x 0.55) is 1.05 % from its central difference (limit 0.1 %). Off until the
-tangents take the matrix at the result."""
+"""Whether a replay step ends with its last Newton update applied (``SolverConfig.apply_last_update``): off.
+
+Its tangents are exact (the solver marks such a step's Newton matrix as the previous iterate's, and the tangents take
+the exact Hessian at the result: tests/sim_core/test_applied_update.py), but at the 1e-5 m/s where it would replace
+1e-7 unapplied it is neither cheaper nor as smooth (docs/benchmarks_log.md, session 56, s56-49applied):
+nominal_s101 through its drive (361 steps), 1,979 Newton iterations against 2,443 but 2,025 factorisations against
+1,910 (the simplified Newton test, which ends most unapplied steps without one, is not run with the update applied)
+and 361 refactorisations at the result for the tangents against 309; and on tests/sysid/test_calibration.py's
+press-slip at eps_v x 0.55 its central differences in eps_v (step 1e-3) are 1.04 % off the converged replay's
+(1e-7 unapplied: 1e-4; 1e-6 applied: 1e-6, but 912 factorisations against 768 on the kinematic 2 s)."""
 
 class ObservationWarning(UserWarning):
     """A channel cannot be fitted (absent from the recording, or not predictable)."""
