@@ -125,8 +125,10 @@ class ReplayDrive:
         axis = self.normal(pose)
         if self.commands is not None:
             pose[:3] += float(np.dot(self.commands[k, :3] - self.controls[k, :3], axis)) * axis
-        anchored = Control({**control.effector_pose_target, name: pose}, dict(control.gripper_target),
-                           control.position_guess)
+        # the step's first Newton iterate, where the replay gives none: every vertex carried on at its velocity
+        # (x^n + dt v^n, the inertia's own prediction), not left at x^n
+        guess = control.position_guess if control.position_guess is not None else sim.state.x + sim.dt * sim.state.v
+        anchored = Control({**control.effector_pose_target, name: pose}, dict(control.gripper_target), guess)
         load, slope = self._carried
         tool = np.asarray(sim.state.effector_pose[name], dtype=float)[:3]
         start = first_compression(load, slope, float(np.dot(pose[:3] - tool, axis)), self.spring.stiffness,
