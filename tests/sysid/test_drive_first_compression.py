@@ -12,10 +12,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import sysid.replay_drive as replay_drive
 from sim_core.control import Control
+from sim_core.series_drive import SeriesSpringDrive
+from sysid.drive_calibration import fit_drive
+from sysid.evidence import load_evidence
+from sysid.observation import ObservationModel
 from sysid.replay_drive import first_compression
 from tests.sim_core.test_series_drive import DOWN, START_Z, _gel_vertices, _pose, _simulation
-from sim_core.series_drive import SeriesSpringDrive
+from tests.sysid.conftest import reference_bag
 
 K_S, C = 3000.0, 30.0
 
@@ -67,3 +72,34 @@ def test_a_pressed_step_starts_at_a_linear_contacts_balance_and_ends_on_the_spri
     held = steps[-4:]
     assert all(r.evaluations == 1 for r, _, _ in held)
     assert all(abs(start - r.compression) * (K_S + C / 0.01 + r.contact_slope) < 1.0e-4 for r, start, _ in held)
+
+
+def test_a_replay_through_the_reference_arm_takes_one_evaluation_a_step_out_of_contact_and_the_converged_load(
+        monkeypatch):
+    """nominal_s101's first 1.6 s (approach, press and dwell; coarse gel) through its fitted arm (3,000 N/m, 34 N
+    s/m): every step without load on the gel takes one evaluation (the damper's lag at once), and the replayed
+    load is the one of the same replay with every drive step solved 100x tighter, within the drive's force
+    tolerance (0.005 noise levels, 1 mN): the first guesses move no answer."""
+    model = ObservationModel(load_evidence(reference_bag("nominal_s101")), dt=0.01, t_max=1.6,
+                             simulation={"gel_resolution": [5, 4, 2]}, arch="cpu")
+    fit = fit_drive(model)
+    assert fit.compliant
+    model.set_drive_stiffness(fit.replay_stiffness, fit.replay_damping)
+    steps = []
+    step = SeriesSpringDrive.step
+
+    def kept(self, *args, **kwargs):
+        result = step(self, *args, **kwargs)
+        steps.append(result)
+        return result
+
+    monkeypatch.setattr(SeriesSpringDrive, "step", kept)
+    trace = model.simulate({})
+    free = [r for r in steps if r.load == 0.0]
+    assert len(steps) == model.step_count and len(free) > 50 and len(free) < len(steps)
+    assert all(r.evaluations == 1 for r in free) and all(r.converged for r in steps)
+    tolerance = replay_drive.DRIVE_FORCE_TOLERANCE * float(model.sigma["wrench"][2])
+    monkeypatch.setattr(replay_drive, "DRIVE_FORCE_TOLERANCE", replay_drive.DRIVE_FORCE_TOLERANCE * 1e-2)
+    tight = model.simulate({})
+    difference = np.abs(np.asarray(trace.wrench)[:, 2] - np.asarray(tight.wrench)[:, 2])
+    assert float(difference.max()) < 2.0 * tolerance
