@@ -126,7 +126,8 @@ class ReplayDrive:
         if self.commands is not None:
             pose[:3] += float(np.dot(self.commands[k, :3] - self.controls[k, :3], axis)) * axis
         # the step's first Newton iterate, where the replay gives none: every vertex carried on at its velocity
-        # (x^n + dt v^n, the inertia's own prediction), not left at x^n
+        # (x^n + dt v^n, the inertia's own prediction), not left at x^n (nominal_s101's replay through its arm: the
+        # steps' first evaluations 1,261 Newton iterations from there, 1,616 from x^n; docs/benchmarks_log.md)
         guess = control.position_guess if control.position_guess is not None else sim.state.x + sim.dt * sim.state.v
         anchored = Control({**control.effector_pose_target, name: pose}, dict(control.gripper_target), guess)
         load, slope = self._carried
