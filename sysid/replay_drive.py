@@ -43,6 +43,30 @@ it. 0.005 (1 mN there, :class:`~sim_core.series_drive.SeriesSpringDrive`'s own d
 cost; 0.5 (until session 55) moved it 0.7 % (docs/benchmarks_log.md, session 55, s55-49rest)."""
 
 
+def first_compression(load: float, slope: float, reach: float, stiffness: float, rate: float) -> float:
+    """The first compression a drive step tries (m): the root of the step's spring balance with the load linear
+    in the tool's advance.
+
+    :class:`sim_core.series_drive.SeriesSpringDrive` balances ``h(b) = F(b) - K b + c d / dt`` (``K = k_s + c /
+    dt``, ``d`` the anchor's reach past the tool's position at the step's start along the normal). With the load
+    the last step's ``F_0`` plus the contact's slope ``s`` times the tool's advance ``d - b`` over the step,
+    ``F(b) = F_0 + s (d - b)``, the root is ``b = (F_0 + (s + c / dt) d) / (K + s)``: exact in free motion (``F =
+    0``, ``s = 0``: the damper's lag in one evaluation), and off by the load's change at a fixed tool (a slide's) in
+    contact. One replay of nominal_s101 through its drive makes 550 step evaluations and 2,076 Newton iterations
+    from it, 661 and 2,441 from the last compression plus the anchor's advance times ``s / (s + K)`` (the damper's
+    lag left out: two evaluations a step on the approach and the retreat), the two within the drive's force
+    tolerance of each other at every step (docs/benchmarks_log.md, session 56, s56-49pre).
+
+    Args:
+        load: the last step's load ``F_0`` on the driven body, N (0 before contact).
+        slope: the contact's slope ``s = -dF/db``, N/m (>= 0; the last secant's estimate, 0 when none).
+        reach: ``d``, m (into the contact positive).
+        stiffness: the spring's ``k_s``, N/m.
+        rate: the damper's ``c / dt``, N/m.
+    """
+    return (load + (slope + rate) * reach) / (stiffness + rate + slope)
+
+
 class ReplayDrive:
     """Series drive of one replay.
 
@@ -83,9 +107,8 @@ class ReplayDrive:
         return cls(spring, model.controls, model.commands, model.sensor_normal)
 
     def start(self) -> None:
-        """Begin a replay: no compression carried, counts at zero."""
+        """Begin a replay: no load and no contact slope carried, counts at zero."""
         self._carried = (0.0, 0.0)
-        self._anchor: np.ndarray | None = None
         self.last_axis: np.ndarray | None = None
         self.evaluations = 0
         self.unconverged = 0
@@ -102,18 +125,18 @@ class ReplayDrive:
         axis = self.normal(pose)
         if self.commands is not None:
             pose[:3] += float(np.dot(self.commands[k, :3] - self.controls[k, :3], axis)) * axis
-        anchored = Control({**control.effector_pose_target, name: pose}, dict(control.gripper_target),
-                           control.position_guess)
-        # first guess: the last compression, plus the share of the anchor's advance along the normal that
-        # the contact takes from the spring in series (k_c / (k_c + K), k_c the last contact slope, K the
-        # spring's stiffness with the damper's c / dt beside it)
-        compression, slope = self._carried
-        advance = 0.0 if self._anchor is None else float(np.dot(pose[:3] - self._anchor, axis))
-        start = compression + advance * slope / (slope + self.spring.stiffness + self.spring.damping / sim.dt)
+        # the step's first Newton iterate, where the replay gives none: every vertex carried on at its velocity
+        # (x^n + dt v^n, the inertia's own prediction), not left at x^n (nominal_s101's replay through its arm: the
+        # steps' first evaluations 1,261 Newton iterations from there, 1,616 from x^n; docs/benchmarks_log.md)
+        guess = control.position_guess if control.position_guess is not None else sim.state.x + sim.dt * sim.state.v
+        anchored = Control({**control.effector_pose_target, name: pose}, dict(control.gripper_target), guess)
+        load, slope = self._carried
+        tool = np.asarray(sim.state.effector_pose[name], dtype=float)[:3]
+        start = first_compression(load, slope, float(np.dot(pose[:3] - tool, axis)), self.spring.stiffness,
+                                  self.spring.damping / sim.dt)
         result = self.spring.step(sim, anchored, axis, start=start, contact_slope=slope)
         self.last_axis = axis
-        self._carried = (result.compression, result.contact_slope)
-        self._anchor = pose[:3].copy()
+        self._carried = (result.load, result.contact_slope)
         self.evaluations += result.evaluations
         self.unconverged += int(not result.converged)
 
