@@ -232,15 +232,15 @@ def with_shear_layer(model: Any, tack: dict[str, Any], t: np.ndarray, data: np.n
         ``tack`` itself, or with the layer: ``params`` with its bond strength and ``k_t``, ``beta``,
         ``shear_stiffness`` (N/m a pair) and ``carried`` replaced.
     """
-    from sysid.diagnose.peel import ADHESION_PARAMETER, RELEASE_TIME_SETTING
-    from sysid.diagnose.shear_layer import SHEAR_STIFFNESS_SETTING, fit_shear_layer, sheet_rms
+    from sysid.diagnose.peel import RELEASE_TIME_SETTING
+    from sysid.diagnose.shear_layer import fit_shear_layer, sheet_rms
 
     carried = t < tack["peel_s"]  # the peel's own row out: the replay lets go within a step of the recording
     layer = fit_shear_layer(model, tack["params"], tack["beta"], data, sigma, carried, max_replays=LAYER_REPLAYS)
     normal_only = sheet_rms(model.predict(tack["carried"])["sheet_points"], data, sigma, carried)
     if layer is None or not layer.rms < normal_only:
         return tack
-    params = {**tack["params"], ADHESION_PARAMETER: layer.beta, SHEAR_STIFFNESS_SETTING: layer.stiffness}
+    params = {**tack["params"], **layer.settings()}
     held = {k: v for k, v in params.items() if k != RELEASE_TIME_SETTING}
     return {**tack, "params": params, "beta": layer.beta, "shear_stiffness": layer.stiffness,
             "carried": model.simulate(held, keep_states=True)}

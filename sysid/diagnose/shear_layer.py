@@ -41,6 +41,12 @@ SHEAR_MAX_REPLAYS = 10
 """Most replays of the ``k_t`` search."""
 
 
+def layer_settings(beta: float, stiffness: float) -> dict[str, float]:
+    """The simulator parameters of the tack's compliant layer: bonds of ``beta`` N a pair held in shear by ``stiffness``
+    (``k_t``, N/m a pair); every replay with the layer takes them from here."""
+    return {ADHESION_PARAMETER: float(beta), SHEAR_STIFFNESS_SETTING: float(stiffness)}
+
+
 @dataclass(frozen=True)
 class ShearLayer:
     """The tack's compliant layer fitted from the carried card (:func:`fit_shear_layer`).
@@ -59,6 +65,11 @@ class ShearLayer:
     rms: float
     profile: tuple[tuple[float, float], ...]
     log_sigma: float
+
+    def settings(self) -> dict[str, float]:
+        """The simulator parameters of the layer at its best, as :func:`fit_shear_layer` replayed it (bond strength and
+        ``k_t``): a replay with the layer takes these, not values rebuilt by its caller."""
+        return layer_settings(self.beta, self.stiffness)
 
     def summary(self) -> dict[str, Any]:
         """fit.json's ``diagnostics.tack.shear_layer``."""
@@ -101,8 +112,7 @@ def fit_shear_layer(model, params: dict[str, float], card_beta: float, data: np.
         k = float(math.exp(u))
         if k not in seen:
             try:
-                pred = model.predict(model.simulate({**params, ADHESION_PARAMETER: beta,
-                                                     SHEAR_STIFFNESS_SETTING: k}))["sheet_points"]
+                pred = model.predict(model.simulate({**params, **layer_settings(beta, k)}))["sheet_points"]
                 seen[k] = sheet_rms(pred, data, sigma, rows)
                 corr[k] = _rows_per_datum((np.asarray(pred)[rows] - data[rows]) / sigma)
             except SimulationDivergedError:
