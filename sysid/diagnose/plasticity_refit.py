@@ -21,6 +21,11 @@ On a lift the set comes from a fold made by the gel's tack, which a calibrated r
 adhesion never makes; where adhesion is named too, the search starts from the replay in which the
 tack carries the card and lets go at the peel read from the recording (:func:`tack_base`,
 :mod:`sysid.diagnose.peel`), and the figures before / after are that replay without / with the term.
+The tack's bonds hold the card in shear as well (the compliant layer, :func:`with_shear_layer`) where
+that follows the carried card better: with normal-only bonds the card slides along the gel, stays a
+straight ramp from the clamp and never folds (plastic_s102: largest dihedral angle 0.004 rad against
+the recording's 0.28-0.33 rad), so the yield search was flat and the refit explained 0.11 of the
+held-out excess (docs/benchmarks_log.md, session 56).
 """
 
 from __future__ import annotations
@@ -47,6 +52,10 @@ does not reproduce the set (the replay does not bend the sheet where the recordi
 
 XATOL = 0.05
 """Tolerance of the search on ``log(yield / theta_max)``."""
+
+LAYER_REPLAYS = 6
+"""Most replays of the tack's shear-layer search in the refit's base (:func:`with_shear_layer`: the layer
+search's four grid points and two of Brent's steps)."""
 
 
 def checkerboard(n_points: int, resolution: tuple[int, int] | None) -> np.ndarray:
@@ -200,8 +209,45 @@ def sheet_resolution(model: Any) -> tuple[int, int] | None:
     return None if sheet is None else tuple(int(v) for v in sheet.resolution)
 
 
+def with_shear_layer(model: Any, tack: dict[str, Any], t: np.ndarray, data: np.ndarray,
+                     sigma: np.ndarray) -> dict[str, Any]:
+    """The tack of :func:`sysid.diagnose.peel.tack_with_peel` with the gel's compliant shear layer, where the layer
+    follows the carried card better than the normal-only bonds.
+
+    Normal-only bonds let the card slide along the gel face: on a lift-and-fold the carried card stays a straight
+    ramp from the clamp (plastic_s102: largest dihedral angle 0.004 rad, the recording's fold 0.28-0.33 rad), so no
+    yield angle gives it the recorded set. The layer holds the bonded points in shear (``k_t`` searched on the sheet
+    points of the rows before the peel, :func:`sysid.diagnose.shear_layer.fit_shear_layer`, at most
+    :data:`LAYER_REPLAYS` replays, bonds of :data:`~sysid.diagnose.shear_layer.LAYER_BOND_WEIGHTS` card weights), so
+    the card arches and folds as the gel carries it back. Those rows are not the refit's (the effect's windows
+    follow the release). One more replay: the layer's carried replay with its states (no release), the start of
+    the yield-angle search's replays.
+
+    Args:
+        model: the calibrated observation model.
+        tack: :func:`~sysid.diagnose.peel.tack_with_peel`'s result with ``carried`` (``keep_carried=True``).
+        t: recorded sheet rows' times ``(n,)`` s; data: recorded sheet points ``(n, p, 3)`` m; sigma: their noise ``(3,)`` m.
+
+    Returns:
+        ``tack`` itself, or with the layer: ``params`` with its bond strength and ``k_t``, ``beta``,
+        ``shear_stiffness`` (N/m a pair) and ``carried`` replaced.
+    """
+    from sysid.diagnose.peel import RELEASE_TIME_SETTING
+    from sysid.diagnose.shear_layer import fit_shear_layer, sheet_rms
+
+    carried = t < tack["peel_s"]  # the peel's own row out: the replay lets go within a step of the recording
+    layer = fit_shear_layer(model, tack["params"], tack["beta"], data, sigma, carried, max_replays=LAYER_REPLAYS)
+    normal_only = sheet_rms(model.predict(tack["carried"])["sheet_points"], data, sigma, carried)
+    if layer is None or not layer.rms < normal_only:
+        return tack
+    params = {**tack["params"], **layer.settings()}
+    held = {k: v for k, v in params.items() if k != RELEASE_TIME_SETTING}
+    return {**tack, "params": params, "beta": layer.beta, "shear_stiffness": layer.stiffness,
+            "carried": model.simulate(held, keep_states=True)}
+
+
 def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: np.ndarray,
-              train: np.ndarray) -> dict[str, Any] | None:
+              train: np.ndarray, shear_layer: bool = True) -> dict[str, Any] | None:
     """The replay in which the gel's tack carries the card and lets go at the recorded peel, when it
     fits the training sheet points (all rows) better than the calibrated replay.
 
@@ -211,11 +257,14 @@ def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: 
     ADHESION_PROBE_WEIGHTS` times :func:`~sysid.diagnose.candidates.adhesion_weight_scale` (bonds
     that together bear four card weights: the card follows the gel, and far above that only the pull
     on the gel grows); their release time is the peel read from the recording
-    (:func:`sysid.diagnose.peel.tack_with_peel`). Two replays.
+    (:func:`sysid.diagnose.peel.tack_with_peel`). Two replays. With ``shear_layer`` the bonds hold the card in
+    shear too where that follows the carried card better (:func:`with_shear_layer`: up to
+    :data:`LAYER_REPLAYS` + 1 replays more): a card that slides along the gel never folds.
 
     Returns:
-        ``{"params", "peel_s", "beta", "prediction" (n, p, 3) m, "train_rms", "nominal_train_rms"}``,
-        or None (no adhesion candidate, no peel in the recording, or no better fit).
+        ``{"params", "peel_s", "beta", "prediction" (n, p, 3) m, "train_rms", "nominal_train_rms"}`` (and
+        ``shear_stiffness`` with the layer), or None (no adhesion candidate, no peel in the recording, or no
+        better fit).
     """
     from sysid.diagnose.candidates import ADHESION_PROBE_WEIGHTS, adhesion_weight_scale
     from sysid.diagnose.peel import RELEASE_TIME_SETTING, tack_with_peel
@@ -229,6 +278,8 @@ def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: 
     tack = tack_with_peel(model, params, t, data, ADHESION_PROBE_WEIGHTS * w, keep_carried=True)
     if tack is None:
         return None
+    if shear_layer:
+        tack = with_shear_layer(model, tack, t, data, sigma)
     resume = resume_before_time(tack["carried"], tack["params"][RELEASE_TIME_SETTING])
     pred = np.asarray(model.predict(model.simulate(tack["params"], resume=resume))["sheet_points"], dtype=float)
     n_tr = max(data[:, train].size, 1)
@@ -241,7 +292,7 @@ def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: 
 def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, nominal: np.ndarray,
                      windows_s: list[list[float]], max_replays: int = 5,
                      max_time: float | None = None, carried_by_tack: bool = False,
-                     worker: Any = None) -> dict[str, Any]:
+                     worker: Any = None, shear_layer: bool = True) -> dict[str, Any]:
     """Bending plasticity refitted with its term (``sheet.yield_angle``) on a calibrated recording.
 
     Args:
@@ -256,6 +307,8 @@ def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, no
             when it fits the training points better than the calibrated replay. The held-out figures
             before / after are then those of that base without / with the term
             (``detail.heldout_rms_calibrated``: the calibrated replay's).
+        shear_layer: with ``carried_by_tack``, the tack's bonds may hold the card in shear
+            (:func:`with_shear_layer`; False: normal-only bonds).
         worker: a process that makes replays beside this one (the calibration's probe process,
             :class:`~sysid.diagnose.probe_worker.ProbeWorker`), or None: the search's second replay is made
             there while this process makes its first (:class:`~sysid.diagnose.resume.YieldReplays`).
@@ -278,7 +331,7 @@ def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, no
     held = ~train
     calibrated = nominal
     base_params = dict(params)
-    tack = tack_base(model, params, recording, nominal, train) if carried_by_tack else None
+    tack = tack_base(model, params, recording, nominal, train, shear_layer) if carried_by_tack else None
     carried = None
     if tack is not None:
         base_params, nominal, carried = dict(tack.pop("params")), tack.pop("prediction"), tack.pop("carried")
@@ -298,10 +351,14 @@ def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, no
     fitted = {} if f["yield_angle"] is None else {"yield_angle_rad": f["yield_angle"]}
     if tack is not None:
         fitted = {**fitted, "adhesion_N_per_pair": tack["beta"], "peel_s": tack["peel_s"]}
+        if "shear_stiffness" in tack:
+            fitted["shear_stiffness_N_per_m"] = tack["shear_stiffness"]
     return {"params": fitted,
             "base": ("calibrated replay" if tack is None else
-                     f"calibrated replay with the gel's tack ({tack['beta']:.3g} N per bond, bonds broken at the "
-                     f"recorded peel, {tack['peel_s']:.3f} s)"),
+                     f"calibrated replay with the gel's tack ({tack['beta']:.3g} N per bond"
+                     + (f", held in shear by a layer of {tack['shear_stiffness']:.3g} N/m per bond"
+                        if "shear_stiffness" in tack else "")
+                     + f", bonds broken at the recorded peel, {tack['peel_s']:.3f} s)"),
             "observable": "sheet_points in the effect's windows (after the release)",
             "heldout": "checkerboard of the sheet grid (half the points fitted, the other half held out)",
             "rms": {"sheet_points": f["train_rms_after"]},

@@ -92,11 +92,13 @@ def test_plastic_set_is_located_after_release(reports):
     # located after the peel, from where the recorded gel's median marker is back at rest (3.36 s: the
     # gel springs back for about 0.3 s after the peel) to the recording's end
     assert any(3.04 < a < 3.4 and b > 3.9 for a, b in sig["windows_s"])
-    # refitted with the yield angle on half the sheet points, held-out figures on the other half
-    # (docs/benchmarks_log.md: the calibrated replay does not lift the card, so the term barely helps)
+    # refitted with the yield angle on half the sheet points, held-out figures on the other half, from the
+    # replay in which the gel's tack holds the card in shear and folds it (docs/benchmarks_log.md, session 56:
+    # 61.03 -> 6.03, 0.92 of the held-out excess; normal-only bonds never folded the card: 0.11)
     fit = doc["refit"]["effects"]["bending_plasticity"]
     assert fit["heldout"].startswith("checkerboard") and len(fit["detail"]["evaluations"]) <= 5
-    assert fit["heldout_rms_after"] <= fit["heldout_rms_before"]
+    assert "shear_stiffness_N_per_m" in fit["params"]
+    assert fit["heldout_rms_before"] - fit["heldout_rms_after"] >= 0.7 * (fit["heldout_rms_before"] - 1.0)
 
 
 def test_nominal_lift_reports_adhesion_as_a_contact_property(tmp_path):
