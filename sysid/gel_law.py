@@ -71,8 +71,6 @@ GEL_LAWS: tuple[str, ...] = ("stable_neohookean", "green_strain")
 AUTO_LAW = "auto"
 """``simulation.gel_element`` (``thinshell diagnose`` / ``thinshell sysid --gel-element``) that asks for the law the
 recording chooses (:func:`choose_gel_law`) instead of a named one."""
-SCENE_LAW = "scene"
-"""``--gel-element`` value that replays the scene's law (else the simulator's default) without a comparison."""
 
 TACTILE = ("markers_xyz", "markers_uv", "wrench")
 """Channels whose whitened sums of squares are compared."""
@@ -447,32 +445,6 @@ def _with_law(model: ObservationModel, law: str) -> ObservationModel:
     if model.gain_profile is not None:
         out.gain_profile = type(model.gain_profile)(out, model.gain_profile.prior)
     return out
-
-
-def auto_not_applicable(tactile: bool, tack: bool, scene_law: str | None, laws: Sequence[str] = GEL_LAWS
-                        ) -> str | None:
-    """Why ``--gel-element auto`` keeps the scene's gel law for a recording, or None where it compares ``laws``.
-
-    The comparison needs a tactile sensor's replays (its channels carry the laws' difference), is made without the
-    tack's layer (whose stiffness :mod:`sysid.tack` fits with the scene's law) and takes the scene's law as its
-    reference, so a scene that names a law outside ``laws`` keeps it.
-
-    Args:
-        tactile: the recording's scene has a tactile sensor.
-        tack: the fit models the gel's tack (``--tack``).
-        scene_law: the scene's ``simulation.gel_element``, None where it names none.
-        laws: the laws compared.
-
-    Returns:
-        The reason in words, or None.
-    """
-    if not tactile:
-        return "the scene has no tactile sensor"
-    if tack:
-        return "--tack fits the tack's layer with the scene's law"
-    if scene_law is not None and scene_law not in laws:
-        return f"the scene names {scene_law}, which auto does not compare"
-    return None
 
 
 def choose_at_start(model: ObservationModel, names: Sequence[str], extra: Sequence[str] = (),

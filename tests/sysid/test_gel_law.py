@@ -217,21 +217,3 @@ def test_the_predicted_step_end_is_the_replay_to_first_order(concealed):
             change = np.linalg.norm(replayed[ch] - raw0[ch])
             error = np.linalg.norm(replayed[ch] - moved[ch])
             assert change > 0.0 and error < bound * change, (name, ch, error / change)
-
-
-def test_auto_is_thinshell_sysids_default_and_keeps_the_scenes_law_where_no_comparison_applies():
-    """``thinshell sysid`` asks for ``auto`` unless told ``--gel-element scene`` (the scene's law, FitOptions None) or a
-    law; ``auto`` keeps the scene's law, and says why, without a tactile sensor, with the tack, or where the scene
-    names a law outside the two compared."""
-    from sysid.cli import build_parser, fit_options
-    from sysid.gel_law import AUTO_LAW, GEL_LAWS, auto_not_applicable
-
-    assert fit_options(build_parser().parse_args(["bag"])).gel_element == AUTO_LAW
-    assert fit_options(build_parser().parse_args(["bag", "--gel-element", "scene"])).gel_element is None
-    assert fit_options(build_parser().parse_args(["bag", "--gel-element", "green_strain"])).gel_element == "green_strain"
-    assert auto_not_applicable(True, False, None) is None
-    for law in GEL_LAWS:
-        assert auto_not_applicable(True, False, law) is None
-    assert "tactile" in auto_not_applicable(False, False, None)
-    assert "--tack" in auto_not_applicable(True, True, None)
-    assert "modified_stvk" in auto_not_applicable(True, False, "modified_stvk")
