@@ -213,7 +213,8 @@ def nominal_tack(model, params: dict[str, float] | None = None, shear_layer: boo
            f"{ADHESION_PROBE_WEIGHTS:g} card weights a pair, released at the recorded peel {tack['peel_s']:.3f} s "
            f"(sheet points whitened RMS up to the peel {without:.3g} -> {with_tack:.3g}; {margin.words()})")
     carried = t_sheet < tack["peel_s"]  # the peel's own row out: the replay lets go within a step of the recording
-    layer = (fit_shear_layer(model, {**dict(params or {}), **values}, beta, data, sigma, carried)
+    layer = (fit_shear_layer(model, {**dict(params or {}), **values}, beta, data, sigma, carried,
+                             normal_ratio=LAYER_NORMAL_RATIO)
              if shear_layer else None)
     if layer is not None and layer.rms < with_tack:
         values = {**values, **layer.settings()}

@@ -27,7 +27,8 @@ NORMAL_RATIO_SETTING = "candidate.adhesion.normal_ratio"
 """The layer's normal over its shear stiffness (:mod:`sim_core.candidates.adhesion`, normal compliance)."""
 
 LAYER_NORMAL_RATIO = 1.0
-"""The layer's bonds are isotropic springs: ``k_n = k_t`` a pair, so ``k_t`` (the fitted parameter) sets both. With
+"""The normal ratio of the layer :mod:`sysid.tack` fits (``thinshell sysid --tack``): isotropic springs, ``k_n = k_t`` a
+pair, so ``k_t`` (the fitted parameter) sets both. With
 the cohesive normal law (~1,100 N/m a pair at the layer's strength) the bonded patch stays flat on the gel face and the
 card leaves the pad at the gel's slope; nominal_s109 shows a card that pivots about its clamp as a straight ramp while
 the gel lifts it (2.1-2.3 s: z 0.1 -> 5.3 mm linearly over x 0 -> 100 mm, the patch tilted 0.24-0.99 mm under the
@@ -52,11 +53,12 @@ SHEAR_MAX_REPLAYS = 10
 """Most replays of the ``k_t`` search."""
 
 
-def layer_settings(beta: float, stiffness: float) -> dict[str, float]:
-    """The simulator parameters of the tack's compliant layer: bonds of ``beta`` N a pair held by isotropic springs of
-    ``stiffness`` (``k_t``, N/m a pair; :data:`LAYER_NORMAL_RATIO`); every replay with the layer takes them from here."""
-    return {ADHESION_PARAMETER: float(beta), SHEAR_STIFFNESS_SETTING: float(stiffness),
-            NORMAL_RATIO_SETTING: LAYER_NORMAL_RATIO}
+def layer_settings(beta: float, stiffness: float, normal_ratio: float | None = None) -> dict[str, float]:
+    """The simulator parameters of the tack's compliant layer: bonds of ``beta`` N a pair held in shear by
+    ``stiffness`` (``k_t``, N/m a pair) and along the normal by the cohesive law (``normal_ratio`` None) or by springs of
+    ``normal_ratio k_t`` (:data:`LAYER_NORMAL_RATIO`: isotropic); every replay with the layer takes them from here."""
+    out = {ADHESION_PARAMETER: float(beta), SHEAR_STIFFNESS_SETTING: float(stiffness)}
+    return out if normal_ratio is None else {**out, NORMAL_RATIO_SETTING: float(normal_ratio)}
 
 
 @dataclass(frozen=True)
@@ -70,6 +72,7 @@ class ShearLayer:
         profile: ``((k_t, rms), ...)`` every replay of the search, by ``k_t``.
         log_sigma: 1-sigma of ``ln k_t`` from the curvature of the sheet points' cost at the best (:func:`_log_sigma`;
             nan when the search ends on a bound).
+        normal_ratio: the bonds' normal over shear stiffness, None for the cohesive normal law (:func:`layer_settings`).
     """
 
     stiffness: float
@@ -77,11 +80,12 @@ class ShearLayer:
     rms: float
     profile: tuple[tuple[float, float], ...]
     log_sigma: float
+    normal_ratio: float | None = None
 
     def settings(self) -> dict[str, float]:
         """The simulator parameters of the layer at its best, as :func:`fit_shear_layer` replayed it (bond strength and
         ``k_t``): a replay with the layer takes these, not values rebuilt by its caller."""
-        return layer_settings(self.beta, self.stiffness)
+        return layer_settings(self.beta, self.stiffness, self.normal_ratio)
 
     def summary(self) -> dict[str, Any]:
         """fit.json's ``diagnostics.tack.shear_layer``."""
@@ -92,7 +96,7 @@ class ShearLayer:
 
 def fit_shear_layer(model, params: dict[str, float], card_beta: float, data: np.ndarray, sigma: np.ndarray,
                     rows: np.ndarray, bounds: tuple[float, float] = SHEAR_STIFFNESS_BOUNDS, grid: int = SHEAR_GRID,
-                    max_replays: int = SHEAR_MAX_REPLAYS) -> ShearLayer | None:
+                    max_replays: int = SHEAR_MAX_REPLAYS, normal_ratio: float | None = None) -> ShearLayer | None:
     """The tangential stiffness ``k_t`` of the tack's compliant layer that best follows the carried card.
 
     The layer (:mod:`sim_core.candidates.adhesion`, shear compliance) holds the bonded card points in shear with
@@ -110,6 +114,8 @@ def fit_shear_layer(model, params: dict[str, float], card_beta: float, data: np.
         data: recorded sheet points ``(n, p, 3)`` m; sigma: their noise, broadcastable; rows: bool ``(n,)``.
         bounds: search range of ``k_t``, N/m per pair; grid: its log-spaced grid points; max_replays: most replays
             (defaults: the search at the start's materials).
+        normal_ratio: the bonds' normal law (:func:`layer_settings`: None the cohesive law, a number springs of that
+            ratio to ``k_t``).
 
     Returns:
         the :class:`ShearLayer`, or None when every replay diverged.
@@ -124,7 +130,7 @@ def fit_shear_layer(model, params: dict[str, float], card_beta: float, data: np.
         k = float(math.exp(u))
         if k not in seen:
             try:
-                pred = model.predict(model.simulate({**params, **layer_settings(beta, k)}))["sheet_points"]
+                pred = model.predict(model.simulate({**params, **layer_settings(beta, k, normal_ratio)}))["sheet_points"]
                 seen[k] = sheet_rms(pred, data, sigma, rows)
                 corr[k] = _rows_per_datum((np.asarray(pred)[rows] - data[rows]) / sigma)
             except SimulationDivergedError:
@@ -143,7 +149,7 @@ def fit_shear_layer(model, params: dict[str, float], card_beta: float, data: np.
     profile = tuple(sorted(seen.items()))
     k_best, rms_best = min(profile, key=lambda kv: kv[1])
     data_count = int(rows.sum()) / corr[k_best]
-    return ShearLayer(k_best, beta, rms_best, profile, _log_sigma(profile, k_best, data_count))
+    return ShearLayer(k_best, beta, rms_best, profile, _log_sigma(profile, k_best, data_count), normal_ratio)
 
 
 def _rows_per_datum(r: np.ndarray) -> int:
