@@ -79,7 +79,7 @@ A replay solved as sysid's are (:data:`sysid.observation.REPLAY_TOL_VELOCITY`) d
 1e-6 / 5e-6 / 3e-6 whitened RMS (markers / wrench / sheet points, per channel RMS 1.2-1.9) and its cost is converged
 to 1e-6 of itself (nominal_s101, docs/benchmarks_log.md, session 55), so the RMS of a replay is resolved to ~5e-7 of
 itself and a gain between two to ~1e-6. At :data:`STOP_RMS` a fit of replays this smooth stopped on a gain of 0.003 %
-with its Gauss-Newton step still 0.33 robust sigma (session 56)."""
+with its Gauss-Newton step still 0.33 robust sigma (docs/benchmarks_log.md, session 56, s56-49applied)."""
 STOP_ROBUST_SIGMA = 0.2
 """Default robust stop of ``thinshell sysid`` (:func:`fit` ``stop_robust_sigma``): the local phase ends
 once the Gauss-Newton step is below 20 % of the robust 1-sigma (:mod:`sysid.covariance`) in every

@@ -18,10 +18,9 @@ refitted to it in closed form, which gives the end's residual and the gains it a
 modulus asks, the step takes back). So a law costs one replay with tangents; ``thinshell sysid --gel-element auto``
 (:func:`choose_at_start`) compares at the fit's start, after the scene's law was calibrated, where the scene's law's
 replay is the one the calibration made for the fit (:mod:`sysid.calibration_secant`, ``last``) and the other law's is
-the one its fit takes as its first: one replay with tangents over a fit at the scene's law. (Session 55 took two
-steps a law, each replayed, the last one plainly: two replays with tangents and one plain a law, ~100 CPU s on
-nominal_s101, docs/benchmarks_log.md, session 55 "49law".) Every replay goes through the effector's drive fitted
-from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor gains (force gain, marker scales,
+the one its fit takes as its first: one replay with tangents over a fit at the scene's law (32-35 CPU s on
+nominal_s101 against ~100 for two replayed steps a law; docs/benchmarks_log.md, session 56 "49auto"). Every replay
+goes through the effector's drive fitted from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor gains (force gain, marker scales,
 camera) refitted in closed form within their prior (:class:`sysid.gain_profile.GainProfile`); the tactile channels
 are compared. The laws have the same number of parameters, so the difference of their Bayesian information criteria
 is the difference of their whitened sums of squares (``-2 log L`` up to a constant shared by both).

@@ -7,8 +7,7 @@ a change from the scene's law only beyond the comparison's spread under the null
   written with a ``scene.yaml`` that does not name its law (concealed): the two laws' noise-free streams differ by
   3.2 / 12.7 / 62 noise levels (markers z / xy, F_z; peak load 26 N against 14 N).
 - The choice does not follow the start: each law is compared near its own gel modulus, gel-sheet friction and stick
-  speed after one Levenberg-Marquardt step on one replay's tangents, its end predicted on those tangents (session 56;
-  session 55 took two replayed steps a law, session 54 fitted each law, up to five replays with tangents), sensor gains
+  speed after one Levenberg-Marquardt step on one replay's tangents, its end predicted on those tangents, sensor gains
   (force gain, marker scales, camera) refitted in closed form, and a law other than the scene's is taken only where its
   delta-BIC exceeds twice its spread under the null (:func:`sysid.gel_law.null_spread`) and it asks its gains no
   further outside their prior than the scene's law. From starts with modulus and friction x0.7, x1.3 and x2 both
