@@ -56,6 +56,11 @@ def main() -> int:
     ap.add_argument("--cprofile", action="store_true")
     ap.add_argument("--copy-sites", type=int, default=0, metavar="FRAMES",
                     help="Forming: each phase's synchronous copies by call site (this many sim_core frames)")
+    ap.add_argument("--account", action="store_true",
+                    help="Forming: the step's account (issue 52 item 1): finer phases (the element kernels, the pair "
+                         "batch, the friction, the envelope's gather and factorisation, its substitution, the trial "
+                         "points, the per-copy scalars, the energies), the device synchronised at every phase "
+                         "change so that each phase is charged its own device work, and the kernel launches by phase")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
     add_emulation_flag(ap)
@@ -89,7 +94,10 @@ def main() -> int:
 
         answer_cuda()
     timers = _wrap_parts(backend)
-    phases = _StepPhases(_phase_specs(backend), args.copy_sites)
+    phases = _StepPhases(_phase_specs(backend) + (_account_specs() if args.account else []), args.copy_sites,
+                         sync=_device_sync() if args.account else None)
+    if args.account:
+        _count_launches(phases)
     cg_iterations = _count_cg_iterations()
     for B in (int(b) for b in str(args.B).split(",")):
         sc.SolverConfig = config
@@ -168,6 +176,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
     per_step: list = []  # the timed steps' (phases, wall, BatchStep.wall_s, stepped copies, iterations)
     step_copies: list = []  # the timed steps' synchronous copies by phase (_StepPhases.copies)
     step_sites: list = []  # and by call site (_StepPhases.sites, with --copy-sites)
+    step_launches: list = []  # the timed steps' kernel launches by phase (_StepPhases.launches, with --account)
     lines: list = []  # the timed steps' summary lines, printed again at the end (a tail of the output holds them)
 
     counted = ("LockstepSolver._stacked_gradient (in _line_search_copies)", "ContactSet._search_position",
@@ -186,6 +195,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
         trials, searches, in_ls, pairs_ls, search_ls, launches, made = (
             [a - b for a, b in zip(timers.get(label, (0, 0.0)), rec)] for label, rec in zip(counted, before))
         copies = {label: list(rec) for label, rec in phases.copies.items()}
+        step_launches.append(dict(phases.launches)) if k > 0 else None
         sites = {key: list(rec) for key, rec in phases.sites.items()}
         eng = run.batch.lockstep
         info = eng.solver.last_stacked_info if eng is not None else None
@@ -240,7 +250,8 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
     print(f"B={B} {args.steps} steps in {wall:.3f} s: {B * args.steps / wall:.2f} scene-steps/s, "
           f"{iterations[0]} Newton iterations, {1e3 * wall / max(iterations[0], 1):.1f} ms an iteration")
     _print_parts(f"B={B} {args.steps} timed steps", timers, wall, iterations[0])
-    _print_phases(B, [p for p, *_ in per_step], [w for _, w, *_ in per_step], step_copies)
+    _print_phases(B, [p for p, *_ in per_step], [w for _, w, *_ in per_step], step_copies,
+                  step_launches if args.account else None)
     if args.copy_sites:
         _print_sites(B, step_sites)
     print("\n".join(lines))
@@ -265,9 +276,11 @@ class _StepPhases:
     garbage collections are a phase of their own. :meth:`mark` starts a step's phases from zero under the
     outermost phase ``label`` (the run loop's own work) and :meth:`take` returns label -> seconds since then."""
 
-    def __init__(self, specs: list, site_frames: int = 0) -> None:
+    def __init__(self, specs: list, site_frames: int = 0, sync=None) -> None:
         import gc
 
+        self.sync = sync  # called at every phase change (the device's queued work charged to the running phase)
+        self.launches: dict = {}  # phase -> kernel launches (with sync)
         self.stack: list = []
         self.seconds: dict = {}
         self._busy = False
@@ -314,6 +327,8 @@ class _StepPhases:
         that starts in here is left to the running phase (``_busy``: the stack is being changed)."""
         self._busy = True
         try:
+            if self.sync is not None:
+                self.sync()
             now = time.perf_counter()
             if self.stack:
                 top = self.stack[-1]
@@ -349,8 +364,15 @@ class _StepPhases:
             self._switch(None)
 
     def mark(self, label: str) -> None:
+        if self.sync is not None:
+            self.sync()
         self.stack, self.seconds, self.copies, self.last = [label], {}, {}, time.perf_counter()
-        self.sites = {}
+        self.sites, self.launches = {}, {}
+
+    def count_launch(self) -> None:
+        """One kernel launch under the running phase (:attr:`launches`)."""
+        if self.stack:
+            self.launches[self.stack[-1]] = self.launches.get(self.stack[-1], 0) + 1
 
     def take(self) -> dict:
         """The step's phases: label -> seconds (its synchronous byte copies stay in :attr:`copies` until the next
@@ -428,19 +450,71 @@ def _phase_specs(backend: str) -> list:
     return specs
 
 
-def _print_phases(B: int, per_step: list, walls: list, copies: list) -> None:
+def _device_sync():
+    """Taichi's ``sync`` (every queued kernel and copy finished), for :class:`_StepPhases` with ``--account``."""
+    from sim_core.ti_backend import ti
+
+    return ti.sync
+
+
+def _account_specs() -> list:
+    """The finer phases of ``--account`` (issue 52 item 1: a steady step's phases beside their roofline floors), each
+    a phase wherever it is called from: the element kernels (the fused elastic terms' gradient and Hessian values),
+    the pair batch's evaluations, the friction's device gradient, the envelope's gather and elimination and its
+    substitution, the trial points' positions (moved and downloaded), the per-copy scalars (the slope, convergence
+    and finite tests' reads), the per-copy energies, and the candidate lists (their cover test at every iterate and
+    trial point; a build where the cover fails, the lists' own mission)."""
+    from sim_core.batch.device_iterates import DeviceIterates
+    from sim_core.batch.line_search import CopyLineSearch
+    from sim_core.contact_set import ContactSet
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.energies.friction.kernel import TiLaggedFriction
+    from sim_core.fused_elastic import FusedElastic
+    from sim_core.ti_kernels.copy_vectors import CopyVectors
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+    elements, pairs = "account: element gradient and Hessian values (fused kernels)", "account: the pair batch"
+    return [(FusedElastic, "_evaluate", elements, None), (FusedElastic, "add_gradient_on_device", elements, None),
+            (FusedElastic, "hessian_values_device", elements, None),
+            (PairBatch, "evaluate", pairs, None),
+            (TiLaggedFriction, "add_gradient_on_device", "account: the friction's gradient", None),
+            (BatchedEnvelope, "_eliminate", "account: envelope gather and factorisation (kernels)", None),
+            (BatchedEnvelope, "_solve_into", "account: envelope substitution (kernels)", None),
+            (DeviceIterates, "trial", "account: trial positions (moved, downloaded)", None),
+            (DeviceIterates, "trial_by", "account: trial positions (moved, downloaded)", None),
+            (CopyVectors, "scalars", "account: per-copy scalars read (slopes, norms, tests)", None),
+            (CopyVectors, "_extremes", "account: per-copy scalars read (slopes, norms, tests)", None),
+            (CopyLineSearch, "_launch_copy_energies", "account: per-copy energies", None),
+            (ContactSet, "_candidate_pairs", "account: the candidate lists (their cover test; a build)", None)]
+
+
+def _count_launches(phases: _StepPhases) -> None:
+    """Charge each Taichi kernel launch to the running phase of ``phases`` (:meth:`_StepPhases.count_launch`)."""
+    from taichi._lib.core.taichi_python import Program
+
+    launch = Program.launch_kernel
+
+    def counted(self, *a, **kw):
+        phases.count_launch()
+        return launch(self, *a, **kw)
+    Program.launch_kernel = counted
+
+
+def _print_phases(B: int, per_step: list, walls: list, copies: list, launches: list | None = None) -> None:
     """The timed steps' phases (:class:`_StepPhases`), ms a step (mean) and per step, with the synchronous byte
-    copies each made (calls and MB a step, their ms a step: ``copies``, one dict a step)."""
+    copies each made (calls and MB a step, their ms a step: ``copies``, one dict a step) and, given ``launches``
+    (one dict a step, ``--account``), the kernel launches a step."""
     steps = max(len(per_step), 1)
     labels = sorted({k for p in per_step for k in p}, key=lambda k: -sum(p.get(k, 0.0) for p in per_step))
     total = sum(walls)
     print(f"{'phase (exclusive), B=' + str(B):66s} {'ms/step':>9s} {'% wall':>7s} {'copies':>7s} {'MB':>7s} "
-          f"{'ms':>7s}  per step (ms)")
+          f"{'ms':>7s} " + (f"{'launch':>7s} " if launches is not None else "") + " per step (ms)")
     for label in labels:
         each = [1e3 * p.get(label, 0.0) for p in per_step]
         calls, nbytes, secs = (sum(c.get(label, [0, 0, 0.0])[j] for c in copies) / steps for j in range(3))
+        launched = "" if launches is None else f"{sum(n.get(label, 0) for n in launches) / steps:7.1f} "
         print(f"{label:66s} {sum(each) / steps:9.2f} {100 * sum(each) / 1e3 / total:7.1f} {calls:7.1f} "
-              f"{nbytes / 1e6:7.1f} {1e3 * secs:7.2f}  " + " ".join(f"{e:8.2f}" for e in each))
+              f"{nbytes / 1e6:7.1f} {1e3 * secs:7.2f} {launched} " + " ".join(f"{e:8.2f}" for e in each))
     print(f"{'sum of the phases':66s} {1e3 * sum(sum(p.values()) for p in per_step) / steps:9.2f}"
           f" {100 * sum(sum(p.values()) for p in per_step) / total:7.1f}")
 
