@@ -344,7 +344,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         contact_terms, x_search, g = self._stacked_gradient(step, x, info)
         g_max = None  # per copy max |g|, where the line search read it with its slope test (one read back)
         H = projection = factorization = None
-        simplified = SimplifiedNewtonTest(self._copy_of_vertex, B, step.simplified and self.pcg is None)
+        simplified = SimplifiedNewtonTest(self._copy_of_vertex, B, step.simplified and self._kept_factorisation)
         for it in range(1, cfg.max_iterations + 1):
             open_ = running & ~done
             if g_max is None:
@@ -353,9 +353,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
             test = simplified.candidates(open_, contact_terms + step.cand_contact, x.host)
-            if test.any():  # the simplified Newton test of these copies (direct solvers: host vectors): one solve
-                d_bar = self.linear_solver.solve(vectors.zero_copies(g.copy(), ~test))  # with the kept factorisation
-                residual_bar = vectors.largest_norm(d_bar) / dt
+            if test.any():  # the simplified Newton test of these copies: one solve with the kept factorisation
+                residual_bar = vectors.largest_norm(self._simplified_correction(step, g, test)) / dt
                 for i in np.flatnonzero(test & (residual_bar < cfg.simplified_newton_check * cfg.tol_velocity)):
                     infos[i].simplified_stops = 1
                     accept(self.config, infos[i], it, residual_bar[i], "simplified")
@@ -466,6 +465,28 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         info.iterations = max((st.iterations for st in infos if st is not None), default=0)
         self.last_stacked_info = info
         return infos
+
+    @property
+    def _kept_factorisation(self) -> bool:
+        """Whether the linear solver keeps each copy's factors of the last factorisation, so that the simplified
+        Newton test (:mod:`sim_core.batch.simplified`) is one substitution: a host direct solver, or the device's
+        envelope Cholesky in double precision (:attr:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope.direct`;
+        its ``"mixed"`` refinements would read the operator of the last factorisation, whose values the fused
+        kernels may have overwritten since). Not the batched CG (no factors)."""
+        pcg = self.pcg
+        return pcg is None or (pcg.direct and not pcg.refinements)
+
+    def _simplified_correction(self, step, g, test: np.ndarray):
+        """The simplified Newton correction ``H(x_{k-1})^-1 g(x_k)`` of the copies in ``test`` (bool ``(B,)``; 0 in the
+        others) with the kept factorisation (:attr:`_kept_factorisation`), the solver's vector (m); on the device the
+        right-hand side and the solve stay there (its flags' one read, as a direction's solve)."""
+        vectors = self._vectors
+        rhs = vectors.zero_copies(vectors.copy(g), ~test)
+        if self.pcg is None:
+            return self.linear_solver.solve(rhs)
+        d_bar = vectors.new()
+        self.pcg.solve_on_device(rhs, d_bar)
+        return vectors.zero_dofs(d_bar, self._fixed_dofs(step))
 
     def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
         """:meth:`NewtonSolver._contact_force`; with the step's result on the device (the batched CG) and a first term

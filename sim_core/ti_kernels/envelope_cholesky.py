@@ -672,6 +672,10 @@ class BatchedEnvelope(BatchedPCG):
     name = "envelope"
     device_copies = True
     """:meth:`factorize` takes its ``copies`` as a device array too (:meth:`_select`)."""
+    direct = True
+    """Each copy's factors of the last :meth:`factorize` stay on the device until the next: a later solve (the
+    lockstep's simplified Newton test) substitutes with them, no factorisation (with ``precision="double"``: the
+    ``"mixed"`` refinements read the operator of that factorisation too)."""
 
     def __init__(self, segments: "np.ndarray | None" = None, precision: str = "double", refinements: int = 2,
                  lanes: int | None = None, schedule: str | None = None, group: int | None = None) -> None:

@@ -476,6 +476,8 @@ class BatchedPCG:
     name = "pcg"
     device_copies = False
     """Whether :meth:`factorize` takes its ``copies`` as a device array too (here: a bool host mask only)."""
+    direct = False
+    """Whether a solve after :meth:`factorize` is a substitution with kept factors (here: CG iterations)."""
     detects_indefinite = False
 
     def __init__(self, segments: "np.ndarray | None" = None, rtol: float = 1e-10, max_iterations: int = 5000,
