@@ -151,8 +151,9 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
     """Three Forming copies stepped in lockstep on CUDA's paths (emulated on the CPU arch; the envelope solver, each
     step's friction from device rows, none of its host arrays read; the candidate lists' vertices gathered where the
     search's sort left their keys): copies 0 and 2 end every step where their
-    separate runs (CPU arch, host friction rows) end, to the solver's tolerance; copy 1, started from a non-finite
-    velocity, fails alone at its first step and keeps its last good state."""
+    separate runs (CPU arch, host friction rows) end, to the solver's tolerance, a step ended by the simplified
+    Newton test on the envelope's kept factors as well; copy 1, started from a non-finite velocity, fails alone at its
+    first step and keeps its last good state."""
     import copy
 
     from sim_core.control import Control
@@ -183,11 +184,16 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
     monkeypatch.setattr(HashCandidates, "device_vertices", lambda *a: gathered.append(gather(*a)) or gathered[-1])
     emulate_cuda(monkeypatch)
     tol = SolverConfig().tol_velocity * 0.005
+    stops = []  # the steps' simplified Newton stops (the envelope's kept factors: no last factorisation)
     for k in range(steps):
         res = run.batch.step([Control(effector_pose_target={effector: t[k]}) for t in run.targets])
+        info = run.batch.lockstep.solver.last_stacked_info
+        stops.append(info.simplified_stops)
+        assert info.factorizations >= info.iterations - info.simplified_stops
         assert res.failed_now == ([1] if k == 0 else [])
         for i, ref in zip((0, 2), separate):
             assert np.max(np.abs(run.batch.states[i].x - ref[k].x)) <= tol, (i, k)
+    assert any(stops)  # (the separate runs' host solver runs the same test)
     assert len(built) >= steps and all(f._host is None for f in built)  # (step 0 again without copy 1)
     assert gathered and all(g is not None for g in gathered)
     assert list(run.batch.active) == [True, False, True] and "non-finite" in run.batch.failures[1]
