@@ -28,7 +28,13 @@ plastic update, the rest), the engine's and the batch's work around the solver (
 mean, with the steady rate that ``thinshell bench batch`` reports for the same steps (``--steps 4``: its steady steps
 of ``--steps 5``). ``--copy-sites`` adds, for each phase, its synchronous copies by call site (each copy's direction and
 its innermost ``sim_core`` frames, a copy a step and MB a step), which shows which copies carry whole arrays.
-``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's compiler in the
+``--account`` (Forming) gives a steady step's account (issue 52 item 1, docs/gpu_roofline.md): finer phases (the fused
+elastic kernels' gradient and Hessian values, the pair batch, the friction's gradient, the envelope's gather and
+factorisation and its substitution, the trial positions, the per-copy scalars' reads, the per-copy energies, the
+candidate lists) with the kernel launches each made, and after the steps of each size it names (``--account 1024``)
+a new batch of that size stepped again with the device synchronised at every phase change (``ti.sync``), so that each phase is charged the device work
+it queued rather than the phase that next waits (that pass's rate is not the bench's: the synchronisations serialise
+host and device). ``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's compiler in the
 profiled region).
 """
 
@@ -56,11 +62,13 @@ def main() -> int:
     ap.add_argument("--cprofile", action="store_true")
     ap.add_argument("--copy-sites", type=int, default=0, metavar="FRAMES",
                     help="Forming: each phase's synchronous copies by call site (this many sim_core frames)")
-    ap.add_argument("--account", action="store_true",
+    ap.add_argument("--account", default=None, metavar="SIZES",
                     help="Forming: the step's account (issue 52 item 1): finer phases (the element kernels, the pair "
                          "batch, the friction, the envelope's gather and factorisation, its substitution, the trial "
-                         "points, the per-copy scalars, the energies), the device synchronised at every phase "
-                         "change so that each phase is charged its own device work, and the kernel launches by phase")
+                         "points, the per-copy scalars, the energies) and the kernel launches by phase; after the "
+                         "steps of each size in SIZES (comma-separated, among --B), a new batch of that size stepped "
+                         "again with the device synchronised at every phase change, so that each phase is charged its "
+                         "own device work")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
     add_emulation_flag(ap)
@@ -94,12 +102,11 @@ def main() -> int:
 
         answer_cuda()
     timers = _wrap_parts(backend)
-    phases = _StepPhases(_phase_specs(backend) + (_account_specs() if args.account else []), args.copy_sites,
-                         sync=_device_sync() if args.account else None)
+    phases = _StepPhases(_phase_specs(backend) + (_account_specs() if args.account else []), args.copy_sites)
     if args.account:
         _count_launches(phases)
     cg_iterations = _count_cg_iterations()
-    for B in (int(b) for b in str(args.B).split(",")):
+    for B in _sizes(args.B):
         sc.SolverConfig = config
         for rec in timers.values():
             rec[0], rec[1] = 0, 0.0
@@ -115,6 +122,12 @@ def main() -> int:
         else:
             _profile_size(run, B, args, timers, cg_iterations, phases)
         del run
+        if args.account and not args.task and B in _sizes(args.account):  # again, the device synchronised
+            run = _with_config(config, orig, lambda: _FormingRun(B, args.steps + 1, backend, lockstep=True))
+            phases.sync = _device_sync()
+            _profile_size(run, B, args, timers, cg_iterations, phases, f"{B} (account: synchronised phases)")
+            phases.sync = None
+            del run
     return 0
 
 
@@ -166,10 +179,13 @@ def _profile_population(run, B: int, args, timers: dict, cg_iterations: list) ->
     _print_timed(B, args, cg_iterations, prof)
 
 
-def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: _StepPhases) -> None:
+def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: _StepPhases,
+                  name: str | None = None) -> None:
     """Set up and step ``run`` (``B`` copies) once, then time ``args.steps`` steps by part: each step's wall time
     split into its phases (:class:`_StepPhases`), and the steady rate ``thinshell bench batch`` reports for the same
-    steps (its ``steady_scene_steps_per_s``: the stepped copies over ``BatchStep.wall_s``)."""
+    steps (its ``steady_scene_steps_per_s``: the stepped copies over ``BatchStep.wall_s``). ``name``: the size's
+    name in the printed lines (default ``B``)."""
+    name = str(B) if name is None else name
     from sim_core.control import Control
 
     iterations = [0]
@@ -202,14 +218,14 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
         its = getattr(info, "iterations", 0) or 0
         iterations[0] += its
         own = [i.iterations for i in res.infos if i is not None]
-        print(f"B={B} step {k}: {wall:.3f} s, iterations {getattr(info, 'iterations', None)} (the copies' own: mean "
+        print(f"B={name} step {k}: {wall:.3f} s, iterations {getattr(info, 'iterations', None)} (the copies' own: mean "
               f"{sum(own) / max(len(own), 1):.2f}), assembly "
               f"{getattr(info, 'time_assembly', 0):.3f} s, solve {getattr(info, 'time_linear_solve', 0):.3f} s, "
               f"factorizations {getattr(info, 'factorizations', None)}", flush=True)
         g = _group_phases(parts)
         retries = (getattr(info, "factorizations", 0) or 0) - its  # the projected retries' factorisations
         kind = f"projection step ({retries} projected retries)" if retries > 0 else "no projection"
-        line = (f"B={B} step {k}: {kind}; wall {1e3 * wall:.1f} ms: {its} Newton iterations "
+        line = (f"B={name} step {k}: {kind}; wall {1e3 * wall:.1f} ms: {its} Newton iterations "
                 f"{1e3 * g['iterations']:.1f} ({1e3 * g['iterations'] / max(its, 1):.1f} ms each), set-up "
                 f"{1e3 * g['set-up']:.1f}, finish {1e3 * g['finish']:.1f}, outside the solver "
                 f"{1e3 * g['outside']:.1f}, garbage collection {1e3 * g['gc']:.1f} (the phases' sum "
@@ -233,7 +249,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
     t0 = time.perf_counter()
     run.batch.warm_up()
     step(0)
-    _print_parts(f"B={B} set-up and step 0", timers, time.perf_counter() - t0)
+    _print_parts(f"B={name} set-up and step 0", timers, time.perf_counter() - t0)
     for rec in timers.values():
         rec[0], rec[1] = 0, 0.0
     iterations[0] = 0
@@ -247,27 +263,27 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
     if prof:
         prof.disable()
     wall = time.perf_counter() - t0
-    print(f"B={B} {args.steps} steps in {wall:.3f} s: {B * args.steps / wall:.2f} scene-steps/s, "
+    print(f"B={name} {args.steps} steps in {wall:.3f} s: {B * args.steps / wall:.2f} scene-steps/s, "
           f"{iterations[0]} Newton iterations, {1e3 * wall / max(iterations[0], 1):.1f} ms an iteration")
-    _print_parts(f"B={B} {args.steps} timed steps", timers, wall, iterations[0])
-    _print_phases(B, [p for p, *_ in per_step], [w for _, w, *_ in per_step], step_copies,
+    _print_parts(f"B={name} {args.steps} timed steps", timers, wall, iterations[0])
+    _print_phases(name, [p for p, *_ in per_step], [w for _, w, *_ in per_step], step_copies,
                   step_launches if args.account else None)
     if args.copy_sites:
-        _print_sites(B, step_sites)
+        _print_sites(name, step_sites)
     print("\n".join(lines))
     groups = [_group_phases(p) for p, *_ in per_step]
     n = max(len(per_step), 1)
     bench_wall = sum(b for _, _, b, _, _ in per_step)
-    print(f"B={B} per step (mean of steps 1-{args.steps}): wall {1e3 * wall / n:.1f} ms, of it Newton iterations "
+    print(f"B={name} per step (mean of steps 1-{args.steps}): wall {1e3 * wall / n:.1f} ms, of it Newton iterations "
           f"{1e3 * sum(g['iterations'] for g in groups) / n:.1f} ({iterations[0] / n:.2f} a step), set-up "
           f"{1e3 * sum(g['set-up'] for g in groups) / n:.1f}, finish {1e3 * sum(g['finish'] for g in groups) / n:.1f}, "
           f"outside the solver {1e3 * sum(g['outside'] for g in groups) / n:.1f}, garbage collection "
           f"{1e3 * sum(g['gc'] for g in groups) / n:.1f} ms")
-    print(f"B={B} steps 1-{args.steps}: {B * args.steps / wall:.2f} scene-steps/s over the run loop's wall; "
+    print(f"B={name} steps 1-{args.steps}: {B * args.steps / wall:.2f} scene-steps/s over the run loop's wall; "
           f"thinshell bench batch would report steady {sum(c for *_, c, _ in per_step) / bench_wall:.2f} "
           f"(the stepped copies over BatchStep.wall_s, {bench_wall:.3f} s; with --steps 4 these are the bench's "
           f"steady steps of --steps 5)")
-    _print_timed(B, args, cg_iterations, prof)
+    _print_timed(name, args, cg_iterations, prof)
 
 
 class _StepPhases:
@@ -450,6 +466,23 @@ def _phase_specs(backend: str) -> list:
     return specs
 
 
+def _sizes(text) -> list[int]:
+    """Batch sizes from a comma-separated ``text`` (``--B``, ``--account``)."""
+    return [int(b) for b in str(text).split(",")]
+
+
+def _with_config(config, orig, make):
+    """``make()`` with ``SolverConfig`` replaced by ``config`` (the lockstep batch's ``--linear-solver``), then
+    restored to ``orig``."""
+    import sim_core.solver_config as sc
+
+    sc.SolverConfig = config
+    try:
+        return make()
+    finally:
+        sc.SolverConfig = orig
+
+
 def _device_sync():
     """Taichi's ``sync`` (every queued kernel and copy finished), for :class:`_StepPhases` with ``--account``."""
     from sim_core.ti_backend import ti
@@ -500,7 +533,7 @@ def _count_launches(phases: _StepPhases) -> None:
     Program.launch_kernel = counted
 
 
-def _print_phases(B: int, per_step: list, walls: list, copies: list, launches: list | None = None) -> None:
+def _print_phases(B: int | str, per_step: list, walls: list, copies: list, launches: list | None = None) -> None:
     """The timed steps' phases (:class:`_StepPhases`), ms a step (mean) and per step, with the synchronous byte
     copies each made (calls and MB a step, their ms a step: ``copies``, one dict a step) and, given ``launches``
     (one dict a step, ``--account``), the kernel launches a step."""
@@ -534,7 +567,7 @@ def _site(frames: int) -> str:
     return " > ".join(reversed(found)) or "(outside sim_core)"
 
 
-def _print_sites(B: int, per_step: list) -> None:
+def _print_sites(B: int | str, per_step: list) -> None:
     """The timed steps' synchronous copies by phase, direction and call site (``--copy-sites``): calls and MB a
     step (mean), the phases in order of their MB, each phase's sites in order of their MB then calls."""
     steps = max(len(per_step), 1)
@@ -570,7 +603,7 @@ def _start_timed(args, cg_iterations: list) -> None:
         ti.profiler.clear_kernel_profiler_info()
 
 
-def _print_timed(B: int, args, cg_iterations: list, prof) -> None:
+def _print_timed(B: int | str, args, cg_iterations: list, prof) -> None:
     """After the timed steps: the CG's iterations per solve, (``--kernel-profiler``) the kernel times and
     (``--cprofile``) cProfile's tables (written to ``--out`` too)."""
     if cg_iterations:
@@ -585,7 +618,7 @@ def _print_timed(B: int, args, cg_iterations: list, prof) -> None:
         st.sort_stats("cumulative").print_stats(args.top)
         st.sort_stats("tottime").print_stats(args.top)
         if args.out:
-            st.dump_stats(f"{args.out}.B{B}")
+            st.dump_stats(f"{args.out}.B{str(B).split()[0]}")
 
 
 def _print_parts(title: str, timers: dict, wall: float, iterations: int = 0) -> None:
