@@ -32,9 +32,9 @@ its innermost ``sim_core`` frames, a copy a step and MB a step), which shows whi
 elastic kernels' gradient and Hessian values, the pair batch, the friction's gradient, the envelope's gather and
 factorisation and its substitution, the trial positions, the per-copy scalars' reads, the per-copy energies, the
 candidate lists) with the kernel launches each made, and after the steps of each size it names (``--account 1024``)
-a new batch of that size stepped again with the device synchronised at every phase change (``ti.sync``), so that each phase is charged the device work
-it queued rather than the phase that next waits (that pass's rate is not the bench's: the synchronisations serialise
-host and device). ``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's compiler in the
+a new batch of that size stepped again with the device synchronised at every phase change (``ti.sync``), so that
+each phase is charged the device work it queued rather than the phase that next waits (that pass's rate is not the
+bench's: the synchronisations serialise host and device). ``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's compiler in the
 profiled region).
 """
 
@@ -228,8 +228,10 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
         line = (f"B={name} step {k}: {kind}; wall {1e3 * wall:.1f} ms: {its} Newton iterations "
                 f"{1e3 * g['iterations']:.1f} ({1e3 * g['iterations'] / max(its, 1):.1f} ms each), set-up "
                 f"{1e3 * g['set-up']:.1f}, finish {1e3 * g['finish']:.1f}, outside the solver "
-                f"{1e3 * g['outside']:.1f}, garbage collection {1e3 * g['gc']:.1f} (the phases' sum "
-                f"{1e3 * sum(g.values()):.1f}); the bench's wall_s {1e3 * res.wall_s:.1f}; CG iterations "
+                f"{1e3 * g['outside']:.1f}, garbage collection {1e3 * g['gc']:.1f}"
+                + (f", the account's finer phases {1e3 * g['account']:.1f}" if g["account"] else "")
+                + f" (the phases' sum {1e3 * sum(g.values()):.1f}); the bench's wall_s {1e3 * res.wall_s:.1f}; "
+                f"CG iterations "
                 f"{sum(cg_iterations[solves:])} in {len(cg_iterations) - solves} solves; synchronous copies "
                 f"{sum(c[0] for c in copies.values())}, {sum(c[1] for c in copies.values()) / 1e6:.1f} MB, "
                 f"{1e3 * sum(c[2] for c in copies.values()):.1f} ms; line search: {trials[0]} trial points, "
@@ -278,7 +280,8 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
           f"{1e3 * sum(g['iterations'] for g in groups) / n:.1f} ({iterations[0] / n:.2f} a step), set-up "
           f"{1e3 * sum(g['set-up'] for g in groups) / n:.1f}, finish {1e3 * sum(g['finish'] for g in groups) / n:.1f}, "
           f"outside the solver {1e3 * sum(g['outside'] for g in groups) / n:.1f}, garbage collection "
-          f"{1e3 * sum(g['gc'] for g in groups) / n:.1f} ms")
+          f"{1e3 * sum(g['gc'] for g in groups) / n:.1f}, the account's finer phases "
+          f"{1e3 * sum(g['account'] for g in groups) / n:.1f} ms")
     print(f"B={name} steps 1-{args.steps}: {B * args.steps / wall:.2f} scene-steps/s over the run loop's wall; "
           f"thinshell bench batch would report steady {sum(c for *_, c, _ in per_step) / bench_wall:.2f} "
           f"(the stepped copies over BatchStep.wall_s, {bench_wall:.3f} s; with --steps 4 these are the bench's "
@@ -585,11 +588,13 @@ def _print_sites(B: int | str, per_step: list) -> None:
 
 def _group_phases(phases: dict) -> dict:
     """A step's phases (:class:`_StepPhases`) in the groups of the step's summary line: Newton iterations, set-up,
-    finish, outside the solver (the engine, the batch, the run loop) and the garbage collector."""
-    groups = {"iterations": 0.0, "set-up": 0.0, "finish": 0.0, "outside": 0.0, "gc": 0.0}
+    finish, outside the solver (the engine, the batch, the run loop), the garbage collector, and ``--account``'s finer
+    phases (wherever they ran: most in the Newton iterations)."""
+    groups = {"iterations": 0.0, "set-up": 0.0, "finish": 0.0, "outside": 0.0, "gc": 0.0, "account": 0.0}
     for label, s in phases.items():
         key = ("iterations" if label.startswith("Newton:") else "set-up" if label.startswith("set-up") else
-               "finish" if label.startswith("finish") else "gc" if label.startswith("garbage") else "outside")
+               "finish" if label.startswith("finish") else "gc" if label.startswith("garbage") else
+               "account" if label.startswith("account:") else "outside")
         groups[key] += s
     return groups
 

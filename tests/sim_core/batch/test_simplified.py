@@ -85,7 +85,8 @@ def test_the_touching_pairs_of_one_candidate_list_are_compared_by_index_as_by_th
     for name, (x, expected) in cases.items():
         reference = same_active_by_copy(active_by_copy([vt], x0, copy_of), active_by_copy([vt], x, copy_of), 3)
         np.testing.assert_array_equal(reference, expected, err_msg=name)
-        np.testing.assert_array_equal(same_active_sets(before, active_sets([vt], x), copy_of, 3), expected, err_msg=name)
+        now = active_sets([vt], x)
+        np.testing.assert_array_equal(same_active_sets(before, now, copy_of, 3), expected, err_msg=name)
         # another potential object (a new candidate list, its pairs in another order): the rows compared
         np.testing.assert_array_equal(same_active_sets(before, active_sets([vt_reversed], x), copy_of, 3), expected,
                                       err_msg=name)
