@@ -34,8 +34,8 @@ factorisation and its substitution, the trial positions, the per-copy scalars' r
 candidate lists) with the kernel launches each made, and after the steps of each size it names (``--account 1024``)
 a new batch of that size stepped again with the device synchronised at every phase change (``ti.sync``), so that
 each phase is charged the device work it queued rather than the phase that next waits (that pass's rate is not the
-bench's: the synchronisations serialise host and device). ``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's compiler in the
-profiled region).
+bench's: the synchronisations serialise host and device). ``--cprofile`` adds cProfile's tables (incomplete on
+Python 3.12 with Taichi's compiler in the profiled region).
 """
 
 from __future__ import annotations
@@ -185,8 +185,9 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
     split into its phases (:class:`_StepPhases`), and the steady rate ``thinshell bench batch`` reports for the same
     steps (its ``steady_scene_steps_per_s``: the stepped copies over ``BatchStep.wall_s``). ``name``: the size's
     name in the printed lines (default ``B``)."""
-    name = str(B) if name is None else name
     from sim_core.control import Control
+
+    name = str(B) if name is None else name
 
     iterations = [0]
     per_step: list = []  # the timed steps' (phases, wall, BatchStep.wall_s, stepped copies, iterations)
@@ -211,7 +212,8 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
         trials, searches, in_ls, pairs_ls, search_ls, launches, made = (
             [a - b for a, b in zip(timers.get(label, (0, 0.0)), rec)] for label, rec in zip(counted, before))
         copies = {label: list(rec) for label, rec in phases.copies.items()}
-        step_launches.append(dict(phases.launches)) if k > 0 else None
+        if k > 0:
+            step_launches.append(dict(phases.launches))
         sites = {key: list(rec) for key, rec in phases.sites.items()}
         eng = run.batch.lockstep
         info = eng.solver.last_stacked_info if eng is not None else None
