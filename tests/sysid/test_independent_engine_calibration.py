@@ -15,9 +15,11 @@ press-and-slides of a MuJoCo 4.0 world whose arm is a 3000 N/m impedance:
   from the card's clamped edge as nominal_s101 does.
 
 The calibration is :func:`sysid.diagnose.signature_engine.prepare` with the default
-:class:`~sysid.diagnose.signature_engine.SignatureSettings`, the one ``thinshell diagnose BAG`` runs: the drive
-along the sensor normal where the data choose it (delta-BIC), the default replay budget, and the sensor gains
-inside the packaged ``+-15 %`` prior (:mod:`sysid.gain_prior`). :data:`sysid.calibration.FOLLOWED_RMS` (3) is the
+:class:`~sysid.diagnose.signature_engine.SignatureSettings`: the drive along the sensor normal where the data choose
+it (delta-BIC), the default replay budget, and the sensor gains inside the packaged ``+-15 %`` prior
+(:mod:`sysid.gain_prior`). ``thinshell diagnose BAG`` runs the same with a probe process beside it and
+``calibration_max_nfev`` 8 against the settings' 4 (``sysid.diagnose.cli.signature_settings``); nominal_s101's check
+reads the command's own. :data:`sysid.calibration.FOLLOWED_RMS` (3) is the
 issue's threshold.
 
 On ``nominal_s602`` the pixel channel is not asserted: it reads 3.74 (markers 2.78, wrench 1.56) with both marker
