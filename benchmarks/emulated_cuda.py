@@ -4,7 +4,9 @@
 sums then equal the CPU arch's to round-off only); :func:`answer_cuda`, called once the modules in question are
 imported (after a first run: the kernels compiled), makes the arch query of every loaded ``sim_core`` module but the
 byte copies' (:mod:`sim_core.ti_kernels.device_copy`, which must copy host memory on the CPU arch) answer "cuda", as
-``tests/sim_core/ti_kernels/test_device_paths.py`` does. The Taichi program still runs on the CPU arch, so the
+``tests/sim_core/ti_kernels/test_device_paths.py`` does (:func:`import_kernel_modules` imports them all first, for a
+script without a compilation run). :func:`add_emulation_flag` and :func:`init_arch` are the scripts' flag and its
+check. The Taichi program still runs on the CPU arch, so the
 kernels' loops stay serial where a single environment asks for it.
 """
 
@@ -19,15 +21,16 @@ def add_emulation_flag(ap) -> None:
                     help="on the CPU arch: every sim_core arch query answers cuda (the CUDA paths, emulated)")
 
 
-def init_arch(ap, args, kernel_profiler: bool = False) -> None:
-    """Refuse ``--emulate-cuda`` off the CPU arch (``ap.error``), initialise the Taichi backend of ``args.arch`` and,
-    emulating, give the sums a GPU's cells (:func:`gpu_sum_cells`; :func:`answer_cuda` comes after the kernels'
-    compilation run)."""
+def init_arch(ap, args, kernel_profiler: bool = False, offline_cache_dir: str | None = None) -> None:
+    """Refuse ``--emulate-cuda`` off the CPU arch (``ap.error``), initialise the Taichi backend of ``args.arch``
+    (:func:`sim_core.ti_backend.init_backend`'s ``kernel_profiler`` and ``offline_cache_dir``: None, Taichi's own)
+    and, emulating, give the sums a GPU's cells (:func:`gpu_sum_cells`; :func:`answer_cuda` comes after the kernels'
+    compilation run, or after :func:`import_kernel_modules`)."""
     if args.emulate_cuda and args.arch != "cpu":
         ap.error("--emulate-cuda emulates the CUDA paths on the CPU arch: --arch cpu")
     from sim_core.ti_backend import init_backend
 
-    init_backend(args.arch, kernel_profiler=kernel_profiler)
+    init_backend(args.arch, offline_cache_dir=offline_cache_dir, kernel_profiler=kernel_profiler)
     if args.emulate_cuda:
         gpu_sum_cells()
 
@@ -40,6 +43,19 @@ def gpu_sum_cells() -> None:
 
     launch._new_cells = lambda runtime: device_copy.new_ndarray(ti.f64, (launch.SUM_CELLS,))
     device_copy.current_arch = lambda: "cpu"
+
+
+def import_kernel_modules() -> None:
+    """Import every module of the kernel packages (``sim_core.energies``, ``.candidates``, ``.ti_kernels``,
+    ``.batch``), so that :func:`answer_cuda` reaches them before any kernel is compiled: for a script that emulates
+    from its first kernel on (no compilation run before)."""
+    import importlib
+    import pkgutil
+
+    for package_name in ("sim_core.energies", "sim_core.candidates", "sim_core.ti_kernels", "sim_core.batch"):
+        package = importlib.import_module(package_name)
+        for info in pkgutil.walk_packages(package.__path__, package_name + "."):
+            importlib.import_module(info.name)
 
 
 def answer_cuda() -> int:

@@ -35,6 +35,8 @@ import functools
 import sys
 import time
 
+from emulated_cuda import add_emulation_flag, answer_cuda, import_kernel_modules, init_arch  # (the script's folder)
+
 _CLOCKS = {"cpu": time.process_time, "wall": time.perf_counter}
 """The clocks of ``--clock``: by default this process's CPU seconds (on a shared machine wall seconds measure the
 neighbours)."""
@@ -115,7 +117,7 @@ def main() -> int:
     ap.add_argument("--task", default="folding_u")
     ap.add_argument("--B", type=int, default=4)
     ap.add_argument("--steps", type=int, default=2)
-    ap.add_argument("--emulate-cuda", action="store_true")
+    add_emulation_flag(ap)
     ap.add_argument("--linear-solver", default=None,
                     help="the copies' linear solver (SolverConfig.linear_solver; envelope: CUDA's default device solver)")
     ap.add_argument("--populations", type=int, default=1, help="populations built and run one after the other")
@@ -124,32 +126,18 @@ def main() -> int:
     ap.add_argument("--clock", choices=tuple(_CLOCKS), default="cpu", help="CPU seconds of this process, or wall")
     args = ap.parse_args()
     clock = _CLOCKS[args.clock]
-    if args.emulate_cuda and args.arch != "cpu":
-        ap.error("--emulate-cuda emulates the CUDA paths on the CPU arch: --arch cpu")
     t0 = clock()
+    init_arch(ap, args, offline_cache_dir=args.cache)
     from sim_core.bench.batch import ARCH_BACKENDS, _TaskRun
-    from sim_core.ti_backend import init_backend
 
-    init_backend(args.arch, offline_cache_dir=args.cache)
     print(f"imports and Taichi init: {clock() - t0:.2f} s")
     if args.emulate_cuda:
-        import importlib
-        import pkgutil
-
-        from emulated_cuda import gpu_sum_cells  # (benchmarks/, the script's folder)
-
-        gpu_sum_cells()
-        for package_name in ("sim_core.energies", "sim_core.candidates", "sim_core.ti_kernels", "sim_core.batch"):
-            package = importlib.import_module(package_name)  # (imported before the arch query changes)
-            for info in pkgutil.walk_packages(package.__path__, package_name + "."):
-                importlib.import_module(info.name)
+        import_kernel_modules()  # (imported before the arch query changes)
     records: dict = {}
     later: dict = {}
     _instrument(records, later, {}, clock)
     backend = ARCH_BACKENDS[args.arch]
     if args.emulate_cuda:
-        from emulated_cuda import answer_cuda  # (benchmarks/, the script's folder)
-
         answer_cuda()
     for k in range(args.populations):
         t = clock()

@@ -38,7 +38,7 @@ import time
 import warnings as _warnings
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -48,7 +48,8 @@ from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedErr
 from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovariance, model_robust_covariance,
                               not_identified, not_identified_note, nuisance_covariance)
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
-                             DIFFERENCE_PARAMETERS, SensitivityJacobian, load_sensitivity, make_jacobian)
+                             DIFFERENCE_PARAMETERS, SensitivityJacobian, load_sensitivity, make_jacobian,
+                             tangent_columns)
 from sysid.fit_region import (first_region_scale, held_jacobian, robust_sigma, sigma_of, unidentified_coordinates,
                                unseen_columns)
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
@@ -709,8 +710,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     if max_replays is not None and max_replays < 2:
         joint = None  # no replay left for a step or a difference column: the start's tangents would go unused
     # the nuisance columns from every cold joint replay's tangents (no replay of the optimum again for them)
-    extra = [parameter_spec(n, model.parameter_value(n)) for n in nuisance] if (
-        robust is not None and joint is not None and not warm_start) else []
+    extra = [parameter_spec(n, model.parameter_value(n))
+             for n in joint_nuisance(names, nuisance, robust=robust, warm_start=warm_start)] if joint is not None else []
     problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint,
                          warm_start=warm_start, max_replays=max_replays, batched=batched, batch_size=batch_size,
                          extra=extra, made=made)
@@ -919,14 +920,20 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
 
 def joint_tangent_names(params: Sequence[str], nuisance: Mapping[str, float], *, robust: str | None,
                         warm_start: bool) -> tuple[str, ...]:
-    """The tangent columns of :func:`fit`'s joint replays with the sensitivity provider
-    (:meth:`sysid.jacobians.SensitivityJacobian.joint`), in order: the fitted parameters with tangents, then the
-    nuisance parameters where the fit takes their columns from every joint replay (a robust covariance, cold
-    replays, none of them a difference parameter). What a replay made before the fit must carry to be taken as its
+    """The tangent columns of :func:`fit`'s joint replays with the sensitivity provider, in order
+    (:func:`sysid.jacobians.tangent_columns` of the fitted parameters and of the nuisance parameters
+    :func:`joint_nuisance` hands the joint replays). What a replay made before the fit must carry to be taken as its
     start's joint replay (``made``)."""
-    names = [n for n in params if n not in DIFFERENCE_PARAMETERS]
-    extra = [n for n in nuisance if n not in params] if robust is not None and not warm_start else []
-    return tuple(names + ([] if any(n in DIFFERENCE_PARAMETERS for n in extra) else extra))
+    own, kept = tangent_columns(params, joint_nuisance(params, nuisance, robust=robust, warm_start=warm_start))
+    return own + kept
+
+
+def joint_nuisance(params: Sequence[str], nuisance: Iterable[str], *, robust: str | None,
+                   warm_start: bool) -> list[str]:
+    """The nuisance parameters (names; those of ``params`` left out) whose columns :func:`fit` asks of every joint
+    replay (:attr:`FitProblem.extra_specs`): all of them where the covariance is robust and the replays are cold
+    (the optimum's own replay then gives them, :func:`_nuisance_jacobian`), else none."""
+    return [n for n in nuisance if n not in params] if robust is not None and not warm_start else []
 
 
 def nuisance_prior_u(name: str, value: float, prior: float) -> float:

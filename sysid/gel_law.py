@@ -61,7 +61,7 @@ from sysid.drive_calibration import fit_drive
 from sysid.fit import FitProblem, parameter_spec
 from sysid.gain_prior import PRIOR_OF, GainPrior
 from sysid.gain_profile import GainProfile
-from sysid.jacobians import DIFFERENCE_PARAMETERS, TangentReplay, load_sensitivity, make_jacobian
+from sysid.jacobians import TangentReplay, load_sensitivity, make_jacobian, tangent_columns
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel, scene_dict_for
 
 GEL_LAWS: tuple[str, ...] = ("stable_neohookean", "green_strain")
@@ -273,9 +273,8 @@ def law_step(model: ObservationModel, names: Sequence[str], start: Mapping[str, 
     provider = make_jacobian("auto")
     problem = FitProblem(model, specs, joint=getattr(provider, "joint", None), extra=extra_specs)
     u = np.zeros(len(specs))
-    tangent_names = [n for n in names if n not in DIFFERENCE_PARAMETERS]  # as the joint replay asks them
-    if not any(n in DIFFERENCE_PARAMETERS for n in extra):
-        tangent_names += list(extra)
+    own, kept = tangent_columns(names, extra)  # the columns the joint replay asks
+    tangent_names = [*own, *kept]
     if problem.joint is not None and (made is None or not made.matches(model, problem.values(u), tangent_names)):
         try:
             made = TangentReplay.make(model, problem.values(u), tangent_names)[0]

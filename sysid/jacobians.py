@@ -37,6 +37,17 @@ the 0.3 % level under small changes of such parameters (the contact set and the 
 stick/slip state switch pair by pair), so a 1 % step measures that roughness rather than the slope."""
 
 
+def tangent_columns(names: Sequence[str], extra: Sequence[str] = ()) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The parameters a joint replay (:meth:`SensitivityJacobian.joint`) solves tangents for, in column order:
+    ``(own, kept)``, ``own`` the parameters ``names`` without the :data:`DIFFERENCE_PARAMETERS` (their columns are
+    forward differences), ``kept`` the ``extra`` ones (a fit's nuisance parameters, held at their nominal) where
+    none of them is a difference parameter, else none (their columns then come from the fit's own nuisance
+    Jacobian). The one home of the rule: a replay made before a fit (:class:`TangentReplay`) carries these."""
+    own = tuple(n for n in names if n not in DIFFERENCE_PARAMETERS)
+    kept = () if any(n in DIFFERENCE_PARAMETERS for n in extra) else tuple(extra)
+    return own, kept
+
+
 # ====================================================================================== Jacobians
 class ReplayProblem(Protocol):
     """What a Jacobian provider needs of a fit problem (:class:`sysid.fit.FitProblem` is one): the
@@ -185,9 +196,8 @@ class SensitivityJacobian:
     def _split(self, problem: ReplayProblem) -> tuple[list[str], list[int]]:
         """Names with simulator sensitivities, and the indices of the parameters without them,
         whose columns are forward differences (:data:`DIFFERENCE_PARAMETERS`)."""
-        names = [n for n in problem.names if n not in DIFFERENCE_PARAMETERS]
         other = [i for i, n in enumerate(problem.names) if n in DIFFERENCE_PARAMETERS]
-        return names, other
+        return list(tangent_columns(problem.names)[0]), other
 
     def _with_difference_columns(self, problem: ReplayProblem, u: np.ndarray, J: np.ndarray, other: list[int],
                                  r0: np.ndarray | None) -> np.ndarray:
@@ -244,9 +254,9 @@ class SensitivityJacobian:
         # the columns of the problem's extra parameters (a fit's nuisance parameters at their nominal) in the same
         # replay, where every one has tangents: the fit then needs no replay of its own for them at its optimum
         extra = tuple(getattr(problem, "extra_specs", ()))
-        if any(s.name in DIFFERENCE_PARAMETERS for s in extra):
-            extra = ()
-        tangent_names = [*names, *(s.name for s in extra)]
+        kept = tangent_columns(names, [s.name for s in extra])[1]
+        extra = extra if kept else ()
+        tangent_names = [*names, *kept]
         made = getattr(problem, "made", None)
         sim = model.prepare(values)
         t = time.perf_counter()

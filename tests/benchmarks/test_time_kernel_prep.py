@@ -46,14 +46,14 @@ def _run(args: list[str]) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=900,
                           check=False)
 
+
 PART = re.compile(r"^--- (?P<title>[^:]+):[^;\n]*; (?P<instances>\d+) kernel instances of (?P<kernels>\d+) kernels, "
                   r"(?P<compiled>\d+) new compiled kernels", re.M)
 
 
 def test_a_population_prepares_each_compiled_kernel_once_and_the_next_none():
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join((str(REPO), str(REPO / "benchmarks"))))
-    run = subprocess.run([sys.executable, "benchmarks/time_kernel_prep.py", "--task", "folding_u", "--B", "2",
-                          "--steps", "1", "--emulate-cuda", "--linear-solver", "envelope", "--populations", "2"], cwd=REPO, env=env, capture_output=True, text=True, timeout=900, check=False)
+    run = _run(["benchmarks/time_kernel_prep.py", "--task", "folding_u", "--B", "2", "--steps", "1", "--emulate-cuda",
+                "--linear-solver", "envelope", "--populations", "2"])
     assert run.returncode == 0, run.stderr[-3000:]
     parts = {m["title"]: {k: int(m[k]) for k in ("instances", "kernels", "compiled")} for m in PART.finditer(run.stdout)}
     first, second = parts["population 1"], parts["population 2"]

@@ -147,3 +147,19 @@ def test_a_drive_steps_support_product_skips_the_terms_away_from_the_drive_bit_f
         assert calls[cls] - 2 * n == model.step_count - SupportTerms.CONFIRMING_STEPS, cls
     assert np.array_equal(dX, dX_all) and np.array_equal(dF, dF_all) and np.array_equal(dQ, dQ_all)
     assert np.abs(dQ).max() > 0.0
+
+
+def test_the_joint_replays_columns_follow_one_rule():
+    """:func:`sysid.fit.joint_tangent_names` is :func:`sysid.jacobians.tangent_columns` of the fit's parameters and
+    of the nuisance it hands its joint replays: the sensor offset (a difference parameter) has no tangent column,
+    a nuisance parameter fitted is not a nuisance column, a difference parameter among the nuisance drops them all,
+    and warm or non-robust fits hand none."""
+    offset = "sensor.normal_offset"
+    nuisance = dict(DEFAULT_NUISANCE)
+    fitted = (FITTED[1], offset, "contact.stiffness")
+    names = joint_tangent_names(fitted, nuisance, robust="hac", warm_start=False)
+    assert names == (FITTED[1], "contact.stiffness", "friction.sheet_table", "gel.poisson_ratio")
+    assert names == sum(jacobians.tangent_columns(fitted, ["friction.sheet_table", "gel.poisson_ratio"]), ())
+    assert joint_tangent_names(fitted[:1], {**nuisance, offset: 1e-3}, robust="hac", warm_start=False) == names[:1]
+    assert joint_tangent_names(fitted, nuisance, robust="hac", warm_start=True) == names[:2]
+    assert joint_tangent_names(fitted, nuisance, robust=None, warm_start=False) == names[:2]
