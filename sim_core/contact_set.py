@@ -658,9 +658,9 @@ class ContactSet:
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
         ee_rows = np.flatnonzero(keep)
         lists = self._list_vertices(vt, ee)
+        ee_kept = np.take(ee, ee_rows, axis=0)
         pots = (self._vertex_triangle(vt, vt_sides, lists.vt_vertices),
-                self._edge_edge(np.take(ee, ee_rows, axis=0), np.take(ee_sides, ee_rows),
-                                np.take(lists.ee_vertices, ee_rows, axis=0)))
+                self._edge_edge(ee_kept, np.take(ee_sides, ee_rows), lists.kept_edge_edge_vertices(ee_rows, ee_kept)))
         for pot in pots:
             pot.workspace = self.workspace
         if self.taichi:
