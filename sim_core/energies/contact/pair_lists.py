@@ -97,7 +97,7 @@ class CandidateVertices:
         geometry kernel's indices, :func:`~sim_core.energies.contact.setup_kernel.pair_geometry`), made once."""
         if self._int32 is None:
             if self._pool is None:
-                self._int32 = (np.asarray(self.vt_vertices, dtype=np.int32), np.asarray(self.ee_vertices, dtype=np.int32))
+                self._int32 = tuple(np.asarray(v, dtype=np.int32) for v in (self.vt_vertices, self.ee_vertices))
             else:
                 self._int32 = tuple(self._pool.copy_of(name, np.asarray(v), np.int32)
                                     for name, v in (("vt_int32", self.vt_vertices), ("ee_int32", self.ee_vertices)))
