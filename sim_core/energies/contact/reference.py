@@ -113,7 +113,7 @@ class PairVertices:
     Rows (:meth:`take`, ``np.take(v, rows, axis=0)``, ``v[rows]`` with an int or bool index array) are gathered
     from ``pairs[rows]`` by ``gather`` (:func:`vertex_triangle_vertices` or :func:`edge_edge_vertices`): the values of
     the whole gather's rows, bit for bit. Anything else (``np.asarray(v)``, ``x[v]``, slices) reads the whole array,
-    gathered once and kept (:attr:`whole_gathers` counts those).
+    gathered once and kept read-only (:attr:`whole_gathers` counts those).
 
     Args:
         pairs: the pairs, int ``(p, 2)`` (kept, not copied).
@@ -156,9 +156,13 @@ class PairVertices:
         return np.asarray(self)[index]
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        """The whole array (gathered once, kept read-only; a new array where ``copy`` or another ``dtype`` asks)."""
         if self._whole is None:
             self._whole = self._gather(self.pairs, self.elements)
+            self._whole.flags.writeable = False
             self.whole_gathers += 1
+        if copy:
+            return np.array(self._whole, dtype=dtype, copy=True)
         return self._whole if dtype is None else self._whole.astype(dtype, copy=False)
 
     def same_as(self, other: object) -> bool:

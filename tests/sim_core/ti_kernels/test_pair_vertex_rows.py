@@ -53,7 +53,10 @@ def test_rows_equal_the_whole_gathers_and_read_only_the_rows():
         np.testing.assert_array_equal(x[rows], x[want])
         np.testing.assert_array_equal(rows[1:4], want[1:4])
         np.testing.assert_array_equal(np.asarray(rows, dtype=np.int32), want.astype(np.int32))
-        assert rows.whole_gathers == 1
+        assert rows.whole_gathers == 1 and not np.asarray(rows).flags.writeable
+        copied = np.array(rows)  # (a copy of the kept array: writing it leaves the rows as they were)
+        copied[:] = -1
+        np.testing.assert_array_equal(np.asarray(rows), want)
         np.testing.assert_array_equal(np.take(rows, active, axis=0), want[active])  # (from the kept whole array)
         assert not same_vertices(rows, want) and same_vertices(want, want.copy())
 
