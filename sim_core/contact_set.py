@@ -333,10 +333,14 @@ class ContactSet:
             return kept[2]
         x_search, vt, ee = candidates
         out = []
-        for pairs, vertices_of, kind, remembered in (
-                (vt, lambda p: vertex_triangle_vertices(p, self.triangles), VertexTriangleContact, memory.vertex_triangle),
-                (ee, lambda p: edge_edge_vertices(p, self.edges), EdgeEdgeContact, memory.edge_edge)):
-            rows = np.flatnonzero(held[vertices_of(pairs)].all(axis=1)) if len(pairs) else np.zeros(0, dtype=np.int64)
+        # a pair's four vertices all held: its two elements' (a vertex, a triangle or an edge wholly held), two lookups
+        # a pair in element tables instead of a gather of every pair's vertices
+        held_triangle, held_edge = held[self.triangles].all(axis=1), held[self.edges].all(axis=1)
+        for pairs, first, second, kind, remembered in (
+                (vt, held, held_triangle, VertexTriangleContact, memory.vertex_triangle),
+                (ee, held_edge, held_edge, EdgeEdgeContact, memory.edge_edge)):
+            rows = np.flatnonzero(np.take(first, pairs[:, 0]) & np.take(second, pairs[:, 1])) if len(pairs) \
+                else np.zeros(0, dtype=np.int64)
             if not len(rows):
                 out.append(pairs)
                 continue
