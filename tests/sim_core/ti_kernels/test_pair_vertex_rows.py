@@ -12,6 +12,7 @@ import pytest
 
 from tests.sim_core.ti_kernels.conftest import TEST_ARCH
 from tests.sim_core.ti_kernels.test_contact_setup import _forming_contact
+from tests.sim_core.ti_kernels.test_step_sides_kernel import sheet_mask, step_points
 from tests.support.emulated_cuda import emulate_cuda
 
 EMULATED_ONLY = ("compares CUDA's lists (their vertices gathered on the device, emulated on the CPU arch) with the "
@@ -70,22 +71,14 @@ def _forming_steps() -> list:
     rng = np.random.default_rng(11)
     x_n = x + 0.4 * contact.eps * rng.normal(size=x.shape)
     x_n.flags.writeable = False
-    sheet = np.zeros(len(x), dtype=bool)
-    for body in contact.model.bodies.values():
-        if body.kind == "sheet":
-            sheet[body.vertices] = True
+    sheet = sheet_mask(contact)
     out, pots = [], []
     memory = contact.begin_step(x_n, None)
     for k in range(2):
         friction = contact.friction(x_n, 0.01, memory)
         out.append([np.asarray(friction.vertices), np.asarray(friction.lam), np.asarray(friction.mu)]
                    + [s.pair_index for s in friction.row_sources])
-        y = x_n + 0.2 * contact.eps * rng.normal(size=x.shape)
-        points = [x_n, y]
-        if k:
-            trial = y.copy()
-            trial[sheet, 2] -= 1.2 * contact.margin
-            points.append(trial)
+        y, points = step_points(contact, x_n, sheet, rng, bool(k))
         for point in points:
             vt, ee = contact.potentials(point, x_n, memory)[:2]
             pots += [vt, ee]
