@@ -92,8 +92,8 @@ def main() -> int:
         print(f"B={B}: candidate lists {len(vt)} vertex-triangle + {len(ee)} edge-edge pairs "
               f"({len(pots)} potentials); a build (median of {args.repeat}): {med(walls):.1f} ms, launches and "
               f"copies {med(inside):.1f} ms, host {med(walls) - med(inside):.1f} ms; synchronous copies "
-              f"{med(copies):.0f}, {med(megabytes):.1f} MB; new device arrays {med(arrays):.0f}; a step's potentials over the "
-              f"kept lists {med(again):.1f} ms", flush=True)
+              f"{med(copies):.0f}, {med(megabytes):.1f} MB; new device arrays {med(arrays):.0f}; a step's potentials "
+              f"over the kept lists {med(again):.1f} ms", flush=True)
         if args.top:
             stats.sort_stats("tottime").print_stats(args.top)
         del run, engine, solver, contact, pots

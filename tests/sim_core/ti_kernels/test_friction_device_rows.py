@@ -150,9 +150,9 @@ def test_contact_set_builds_the_friction_rows_on_the_device_path(ti_cpu, monkeyp
 def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkeypatch):
     """Three Forming copies stepped in lockstep on CUDA's paths (emulated on the CPU arch; the envelope solver, each
     step's friction from device rows, none of its host arrays read; the candidate lists' vertices gathered where the
-    search's sort left their keys, the potentials reading theirs by rows, none gathered whole): copies 0 and 2 end every step where their
-    separate runs (CPU arch, host friction rows) end, to the solver's tolerance; copy 1, started from a non-finite
-    velocity, fails alone at its first step and keeps its last good state."""
+    search's sort left their keys, the potentials reading theirs by rows, none gathered whole): copies 0 and 2 end
+    every step where their separate runs (CPU arch, host friction rows) end, to the solver's tolerance; copy 1, started
+    from a non-finite velocity, fails alone at its first step and keeps its last good state."""
     import copy
 
     from sim_core.control import Control
