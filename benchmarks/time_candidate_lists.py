@@ -6,10 +6,12 @@ Usage: ``python benchmarks/time_candidate_lists.py --arch cuda --B 256,1024 --re
 ``--steps`` times (the steady scene-steps/s of the steps after the
 first reported: ``thinshell bench batch``'s rate), then ``--repeat`` times drops the contact set's lists (the
 search, its sides, vertices and pair batch: what a trial point outside the last search's cover costs) and builds them
-again with :meth:`~sim_core.contact_set.ContactSet.potentials` at the batch's positions, the step's memory. Reports a
-build's wall time (ms, median), the part of it inside Taichi launches and synchronous copies (cProfile, the launch
-calls' cumulative time), the host's rest, the synchronous copies (count, MB) and new device arrays a build, and the
-lists' lengths. The candidate lists' host work is the host's rest: on a GPU the launches are asynchronous and a copy
+again with :meth:`~sim_core.contact_set.ContactSet.potentials` at the batch's positions, the step's memory, then
+``--repeat`` times makes a step's potentials over the kept lists (a new step's memory: sides measured and placed again,
+new potentials and pair batch: what every step's start costs). Reports a build's wall time (ms, median), the part of it
+inside Taichi launches and synchronous copies (cProfile, the launch calls' cumulative time), the host's rest, the
+synchronous copies (count, MB) and new device arrays a build, the lists' lengths, and the step's potentials' wall time
+(ms, median). The candidate lists' host work is the host's rest: on a GPU the launches are asynchronous and a copy
 waits for them, so the launches' and copies' time is the device's share plus the transfers.
 """
 
@@ -79,11 +81,19 @@ def main() -> int:
             megabytes.append(counts["bytes"] / 1e6)
             arrays.append(counts["arrays"])
         vt, ee = contact._candidates[1:]
+        again = []  # a step's potentials over the kept lists (new sides: what every step's start costs)
+        for _ in range(args.repeat):
+            memory = contact.begin_step(x, engine.state.contact_memory)
+            contact._end_geometry = None  # (the sides measured again, as a step whose start is not the last end)
+            t = time.perf_counter()
+            contact.potentials(x, x, memory)
+            again.append(1e3 * (time.perf_counter() - t))
         med = statistics.median
         print(f"B={B}: candidate lists {len(vt)} vertex-triangle + {len(ee)} edge-edge pairs "
               f"({len(pots)} potentials); a build (median of {args.repeat}): {med(walls):.1f} ms, launches and "
               f"copies {med(inside):.1f} ms, host {med(walls) - med(inside):.1f} ms; synchronous copies "
-              f"{med(copies):.0f}, {med(megabytes):.1f} MB; new device arrays {med(arrays):.0f}", flush=True)
+              f"{med(copies):.0f}, {med(megabytes):.1f} MB; new device arrays {med(arrays):.0f}; a step's potentials "
+              f"over the kept lists {med(again):.1f} ms", flush=True)
         if args.top:
             stats.sort_stats("tottime").print_stats(args.top)
         del run, engine, solver, contact, pots

@@ -333,10 +333,14 @@ class ContactSet:
             return kept[2]
         x_search, vt, ee = candidates
         out = []
-        for pairs, vertices_of, kind, remembered in (
-                (vt, lambda p: vertex_triangle_vertices(p, self.triangles), VertexTriangleContact, memory.vertex_triangle),
-                (ee, lambda p: edge_edge_vertices(p, self.edges), EdgeEdgeContact, memory.edge_edge)):
-            rows = np.flatnonzero(held[vertices_of(pairs)].all(axis=1)) if len(pairs) else np.zeros(0, dtype=np.int64)
+        # a pair's four vertices all held: its two elements' (a vertex, a triangle or an edge wholly held), two lookups
+        # a pair in element tables instead of a gather of every pair's vertices
+        held_triangle, held_edge = held[self.triangles].all(axis=1), held[self.edges].all(axis=1)
+        for pairs, first, second, kind, remembered in (
+                (vt, held, held_triangle, VertexTriangleContact, memory.vertex_triangle),
+                (ee, held_edge, held_edge, EdgeEdgeContact, memory.edge_edge)):
+            rows = np.flatnonzero(np.take(first, pairs[:, 0]) & np.take(second, pairs[:, 1])) if len(pairs) \
+                else np.zeros(0, dtype=np.int64)
             if not len(rows):
                 out.append(pairs)
                 continue
@@ -658,9 +662,9 @@ class ContactSet:
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
         ee_rows = np.flatnonzero(keep)
         lists = self._list_vertices(vt, ee)
+        ee_kept = np.take(ee, ee_rows, axis=0)
         pots = (self._vertex_triangle(vt, vt_sides, lists.vt_vertices),
-                self._edge_edge(np.take(ee, ee_rows, axis=0), np.take(ee_sides, ee_rows),
-                                np.take(lists.ee_vertices, ee_rows, axis=0)))
+                self._edge_edge(ee_kept, np.take(ee_sides, ee_rows), lists.kept_edge_edge_vertices(ee_rows, ee_kept)))
         for pot in pots:
             pot.workspace = self.workspace
         if self.taichi:

@@ -112,7 +112,7 @@ def same_active_sets(a: list[tuple] | None, b: list[tuple] | None, copy_of_verte
             if ea.shape == eb.shape and np.array_equal(ea, eb):
                 continue
             differing = np.concatenate([_missing(ea, eb), _missing(eb, ea)])
-            same[copy_of_vertex[np.asarray(ta.vertices)[differing, 0]]] = False
+            same[copy_of_vertex[np.take(ta.vertices, differing, axis=0)[:, 0]]] = False
             continue
         if not _same_rows(*_by_copy(_rows_of(ta, ea), copy_of_vertex), *_by_copy(_rows_of(tb, eb), copy_of_vertex),
                           same):
@@ -129,8 +129,9 @@ def _missing(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def _rows_of(term, entries: np.ndarray) -> np.ndarray:
-    """A term's :func:`active_sets` entries as vertex rows: a pair potential's indices as its pairs' vertices."""
-    return np.take(np.asarray(term.vertices), entries, axis=0) if isinstance(term, PAIR_POTENTIALS) else entries
+    """A term's :func:`active_sets` entries as vertex rows: a pair potential's indices as its pairs' vertices (those
+    rows only: a :class:`~sim_core.energies.contact.reference.PairVertices` gathers no whole array)."""
+    return np.take(term.vertices, entries, axis=0) if isinstance(term, PAIR_POTENTIALS) else entries
 
 
 def _by_copy(rows: np.ndarray, copy_of_vertex: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -11,6 +11,8 @@ from sim_core.adjoint import rollout_step
 from sim_core.builder import ModelBuilder
 from sim_core.bundled import config_dir
 from sim_core.contact_set import ContactSet
+from sim_core.energies.contact.reference import (EdgeEdgeContact, VertexTriangleContact, edge_edge_vertices,
+                                                 vertex_triangle_vertices)
 from sim_core.control import Control
 from sim_core.errors import ConfigError
 from sim_core.mesh.sheet import grid_sheet
@@ -191,6 +193,24 @@ def test_held_pairs_apart_and_unremembered_leave_the_candidates_others_stay():
     contact.held = held
     _, vt_kept, ee_kept = contact._without_held_pairs(candidates, x, memory)
     assert len(vt_kept) < len(candidates[1]) and len(ee_kept) < len(candidates[2])
+    # exactly the pairs with a vertex not held, active at x or remembered (their vertices gathered whole here), with
+    # the whole card held and with the card's first half held (pairs of held and free elements too)
+    some = held.copy()
+    some[(sheet.vertex_start + sheet.vertex_stop) // 2:sheet.vertex_stop] = False
+    for mask in (held, some):
+        contact.held = mask
+        found = contact._without_held_pairs(candidates, x, memory)
+        for pairs, kept, vertices, kind, mem in (
+                (candidates[1], found[1], vertex_triangle_vertices(candidates[1], contact.triangles),
+                 VertexTriangleContact, memory.vertex_triangle),
+                (candidates[2], found[2], edge_edge_vertices(candidates[2], contact.edges), EdgeEdgeContact,
+                 memory.edge_edge)):
+            elements = contact.triangles if kind is VertexTriangleContact else contact.edges
+            stays = ~mask[vertices].all(axis=1) | kind(pairs, elements, np.zeros(len(pairs)), contact.stiffness,
+                                                       contact.eps).active_mask(x) | mem.lookup(pairs)[1]
+            assert not stays.all()
+            np.testing.assert_array_equal(kept, pairs[stays])
+    contact.held = held
     assert any(np.array_equal(row, [p, t]) for row in vt_kept)  # active: kept
     for row in remembered:
         assert any(np.array_equal(r, row) for r in ee_kept)  # remembered: kept

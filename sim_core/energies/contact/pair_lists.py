@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 
 from sim_core.array_pool import ArrayPool
-from sim_core.energies.contact.reference import edge_edge_vertices, vertex_triangle_vertices
+from sim_core.energies.contact.reference import PairVertices, edge_edge_vertices, vertex_triangle_vertices
 from sim_core.unique import compact_indices
 
 
@@ -38,8 +38,10 @@ class CandidateVertices:
 
     Attributes:
         vt, ee: the lists (the arrays given: :meth:`of` matches them by identity).
-        vt_vertices: ``[p, a, b, c]`` int64 ``(p, 4)``.
-        ee_vertices: ``[a0, a1, b0, b1]`` int64 ``(q, 4)``.
+        vt_vertices: ``[p, a, b, c]`` int64 ``(p, 4)``; with ``device_vertices`` a
+            :class:`~sim_core.energies.contact.reference.PairVertices` (rows gathered from the pairs when asked: no
+            host gather of every candidate where the kernels read the device's).
+        ee_vertices: ``[a0, a1, b0, b1]`` int64 ``(q, 4)``; likewise.
         device: the device copies of this list's index arrays (a :func:`~sim_core.ti_kernels.buffers.on_device`
             cache; empty off CUDA), shared by the kernels that read them.
 
@@ -60,7 +62,7 @@ class CandidateVertices:
             read them there (:meth:`index_arrays`) instead of :meth:`int32_vertices` sent from the host.
 
     Raises:
-        IndexError: a triangle or edge row out of range.
+        IndexError: a triangle or edge row out of range (with ``device_vertices``: when its vertices are read).
     """
 
     def __init__(self, vt: np.ndarray, ee: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
@@ -70,7 +72,11 @@ class CandidateVertices:
         self.vt, self.ee = vt, ee
         self._device_vertices = device_vertices
         self._pool = pool
-        if pool is None or not all(a.dtype == np.int64 for a in (vt, ee, triangles, edges)):
+        self._edges = edges
+        if device_vertices is not None:  # the kernels read the device's: the host's rows gathered when asked
+            self.vt_vertices = PairVertices(vt, triangles, vertex_triangle_vertices)
+            self.ee_vertices = PairVertices(ee, edges, edge_edge_vertices)
+        elif pool is None or not all(a.dtype == np.int64 for a in (vt, ee, triangles, edges)):
             self.vt_vertices = vertex_triangle_vertices(vt, triangles)
             self.ee_vertices = edge_edge_vertices(ee, edges)
         else:
@@ -91,9 +97,9 @@ class CandidateVertices:
         geometry kernel's indices, :func:`~sim_core.energies.contact.setup_kernel.pair_geometry`), made once."""
         if self._int32 is None:
             if self._pool is None:
-                self._int32 = (self.vt_vertices.astype(np.int32), self.ee_vertices.astype(np.int32))
+                self._int32 = tuple(np.asarray(v, dtype=np.int32) for v in (self.vt_vertices, self.ee_vertices))
             else:
-                self._int32 = tuple(self._pool.copy_of(name, v, np.int32)
+                self._int32 = tuple(self._pool.copy_of(name, np.asarray(v), np.int32)
                                     for name, v in (("vt_int32", self.vt_vertices), ("ee_int32", self.ee_vertices)))
         return self._int32
 
@@ -115,6 +121,16 @@ class CandidateVertices:
                                for pairs, given in zip((self.vt, self.ee), self._given_keys))
         return self._keys
 
+    def kept_edge_edge_vertices(self, ee_rows: np.ndarray, ee_kept: np.ndarray):
+        """The vertices ``(r, 4)`` of the edge-edge candidates ``ee_rows`` (int ``(r,)``), whose pairs are ``ee_kept``
+        (``ee[ee_rows]``, int ``(r, 2)``): the rows of :attr:`ee_vertices`, or where those are gathered by rows
+        (:class:`~sim_core.energies.contact.reference.PairVertices`, the lists' vertices on the device) a
+        :class:`~sim_core.energies.contact.reference.PairVertices` of ``ee_kept``: nothing gathered here. The same
+        values."""
+        if isinstance(self.ee_vertices, PairVertices):
+            return PairVertices(ee_kept, self._edges, edge_edge_vertices)
+        return np.take(self.ee_vertices, ee_rows, axis=0)
+
     def batch_layout(self, ee_rows: np.ndarray) -> "BatchLayout":
         """The :class:`BatchLayout` of a pair batch over every vertex-triangle candidate and the edge-edge candidates
         ``ee_rows`` (int ``(r,)``, increasing), in that order; the compaction of every candidate's vertices is made on
@@ -122,7 +138,7 @@ class CandidateVertices:
         if self._compact is None:
             self._compact = self._compaction()
         own, local = self._compact
-        p = len(self.vt_vertices)
+        p = len(self.vt)
         ee_rows = np.asarray(ee_rows, dtype=np.int64)
         rows = np.empty(p + len(ee_rows), dtype=np.int32)
         rows[:p] = np.arange(p, dtype=np.int32)
@@ -142,7 +158,8 @@ class CandidateVertices:
                 from sim_core.ti_kernels.compaction import compact_on_device
 
                 return compact_on_device(*self.index_arrays(), self._vertex_count, self.device, DEVICE_INDEX_NAMES)
-        return compact_indices((self.vt_vertices, self.ee_vertices), dtype=np.int32, size=self._vertex_count)
+        return compact_indices((np.asarray(self.vt_vertices), np.asarray(self.ee_vertices)), dtype=np.int32,
+                               size=self._vertex_count)
 
 
 def _pooled_vertices(pool: ArrayPool, vt: np.ndarray, ee: np.ndarray, triangles: np.ndarray, edges: np.ndarray

@@ -102,6 +102,89 @@ def edge_edge_vertices(pairs: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return np.take(edges, pairs, axis=0).reshape(-1, 4)
 
 
+class PairVertices:
+    """The global vertices ``(p, 4)`` int64 of pairs ``(p, 2)`` over their elements, gathered from the pairs by rows
+    when rows are asked for, not kept whole: a pair potential's ``vertices`` where the caller keeps the lists'
+    vertices elsewhere (a contact set's candidate lists on CUDA, their int32 vertices in device memory,
+    :class:`~sim_core.energies.contact.pair_lists.CandidateVertices`), so that a new list costs no host gather of
+    every candidate (60 MB of int64 at 1024 Forming copies) while the potentials read the rows they use (the active
+    pairs', a few per cent).
+
+    Rows (:meth:`take`, ``np.take(v, rows, axis=0)``, ``v[rows]`` with an int or bool index array) are gathered
+    from ``pairs[rows]`` by ``gather`` (:func:`vertex_triangle_vertices` or :func:`edge_edge_vertices`): the values of
+    the whole gather's rows, bit for bit. Anything else (``np.asarray(v)``, ``x[v]``, slices) reads the whole array,
+    gathered once and kept read-only (:attr:`whole_gathers` counts those).
+
+    Args:
+        pairs: the pairs, int ``(p, 2)`` (kept, not copied).
+        elements: the triangles ``(t, 3)`` or edges ``(e, 2)`` the pairs' rows index (kept).
+        gather: :func:`vertex_triangle_vertices` or :func:`edge_edge_vertices`.
+
+    Attributes:
+        pairs, elements: as given.
+        shape: ``(p, 4)``; dtype: int64; ndim: 2.
+        whole_gathers: how many times the whole array was gathered (0 or 1).
+    """
+
+    ndim = 2
+
+    def __init__(self, pairs: np.ndarray, elements: np.ndarray, gather) -> None:
+        self.pairs, self.elements, self._gather = pairs, elements, gather
+        self.shape = (len(pairs), 4)
+        self.dtype = np.result_type(pairs, elements)
+        self._whole: np.ndarray | None = None
+        self.whole_gathers = 0
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def take(self, indices, axis=None, out=None, mode="raise") -> np.ndarray:
+        """Rows ``indices`` (int ``(a,)``) along axis 0: ``gather(pairs[indices])``, a new ``(a, 4)`` array (the kept
+        whole array's rows where it was made); any other axis, or ``out``, takes from the whole array."""
+        if axis != 0 or out is not None:
+            return np.take(np.asarray(self), indices, axis=axis, out=out, mode=mode)
+        if self._whole is not None:
+            return np.take(self._whole, indices, axis=0, mode=mode)
+        return self._gather(np.take(self.pairs, indices, axis=0, mode=mode).reshape(-1, 2), self.elements)
+
+    def __getitem__(self, index) -> np.ndarray:
+        if isinstance(index, np.ndarray) and index.ndim == 1 and (index.dtype == bool or index.dtype.kind in "iu"):
+            rows = np.flatnonzero(index) if index.dtype == bool else index
+            if index.dtype == bool and len(index) != self.shape[0]:
+                raise IndexError(f"PairVertices: a boolean index of {len(index)} for {self.shape[0]} rows")
+            return self.take(rows, axis=0)
+        return np.asarray(self)[index]
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        """The whole array (gathered once, kept read-only; a new array where ``copy`` or another ``dtype`` asks)."""
+        if self._whole is None:
+            self._whole = self._gather(self.pairs, self.elements)
+            self._whole.flags.writeable = False
+            self.whole_gathers += 1
+        if copy:
+            return np.array(self._whole, dtype=dtype, copy=True)
+        return self._whole if dtype is None else self._whole.astype(dtype, copy=False)
+
+    def same_as(self, other: object) -> bool:
+        """Whether ``other`` is a :class:`PairVertices` of equal pairs over the same elements (the same array object)
+        by the same gather: the same vertices, known without gathering them."""
+        return (isinstance(other, PairVertices) and other.elements is self.elements and other._gather is self._gather
+                and (other.pairs is self.pairs or np.array_equal(other.pairs, self.pairs)))
+
+
+def same_vertices(a, b) -> bool:
+    """Whether two pair potentials' ``vertices`` (arrays ``(p, 4)`` or :class:`PairVertices`) are known to hold the
+    same values: the same object, :meth:`PairVertices.same_as` where either is a :class:`PairVertices` (nothing
+    gathered; False beside an array), else equal arrays. (False only costs a caller an evaluation made again.)"""
+    if a is b:
+        return True
+    if isinstance(a, PairVertices):
+        return a.same_as(b)
+    if isinstance(b, PairVertices):
+        return False
+    return a.shape == b.shape and np.array_equal(a, b)
+
+
 class PairEvaluation:
     """An evaluation of a pair potential kept for the positions it was made at (:meth:`_PairPenalty._evaluate`).
 
@@ -332,8 +415,7 @@ class _PairPenalty:
         """
         last = None if other is None else workspace_of(other).get(other, "evaluation")
         if (last is not None and type(other) is type(self) and other.eps == self.eps
-                and (other.vertices is self.vertices or (other.vertices.shape == self.vertices.shape
-                                                         and np.array_equal(other.vertices, self.vertices)))
+                and same_vertices(other.vertices, self.vertices)
                 and np.array_equal(other.sides, self.sides)):
             workspace_of(self).put(self, "evaluation", last)
 

@@ -150,10 +150,10 @@ def test_contact_set_builds_the_friction_rows_on_the_device_path(ti_cpu, monkeyp
 def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkeypatch):
     """Three Forming copies stepped in lockstep on CUDA's paths (emulated on the CPU arch; the envelope solver, each
     step's friction from device rows, none of its host arrays read; the candidate lists' vertices gathered where the
-    search's sort left their keys): copies 0 and 2 end every step where their
-    separate runs (CPU arch, host friction rows) end, to the solver's tolerance, a step ended by the simplified
-    Newton test on the envelope's kept factors as well; copy 1, started from a non-finite velocity, fails alone at its
-    first step and keeps its last good state."""
+    search's sort left their keys, the potentials reading theirs by rows, none gathered whole): copies 0 and 2 end
+    every step where their separate runs (CPU arch, host friction rows) end, to the solver's tolerance, a step ended
+    by the simplified Newton test on the envelope's kept factors as well; copy 1, started from a non-finite velocity,
+    fails alone at its first step and keeps its last good state."""
     import copy
 
     from sim_core.control import Control
@@ -162,6 +162,7 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
     from sim_core.solver_config import SolverConfig
 
     from sim_core.bench.batch import _FormingRun
+    from sim_core.energies.contact.reference import PairVertices
     from sim_core.ti_kernels.hash_candidates import HashCandidates
 
     steps = 3
@@ -182,6 +183,10 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
     gathered = []
     gather = HashCandidates.device_vertices
     monkeypatch.setattr(HashCandidates, "device_vertices", lambda *a: gathered.append(gather(*a)) or gathered[-1])
+    whole = []  # the potentials' vertices read whole (none: the rows they use, PairVertices)
+    read_whole = PairVertices.__array__
+    monkeypatch.setattr(PairVertices, "__array__", lambda self, *a, **k: (whole.append(self),
+                                                                          read_whole(self, *a, **k))[1])
     emulate_cuda(monkeypatch)
     tol = SolverConfig().tol_velocity * 0.005
     stops = []  # the steps' simplified Newton stops (the envelope's kept factors: no last factorisation)
@@ -195,6 +200,7 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
             assert np.max(np.abs(run.batch.states[i].x - ref[k].x)) <= tol, (i, k)
     assert any(stops)  # (the separate runs' host solver runs the same test)
     assert len(built) >= steps and all(f._host is None for f in built)  # (step 0 again without copy 1)
-    assert gathered and all(g is not None for g in gathered)
+    assert gathered and all(g is not None for g in gathered) and not whole
+    assert isinstance(run.batch.lockstep.solver.contact._cache[2][1].vertices, PairVertices)
     assert list(run.batch.active) == [True, False, True] and "non-finite" in run.batch.failures[1]
     np.testing.assert_array_equal(run.batch.states[1].x, start.x)

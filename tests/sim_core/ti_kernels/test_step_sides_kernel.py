@@ -120,6 +120,28 @@ def test_the_codes_and_placed_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, mon
         side_codes(x, vt.astype(np.int64), ee, 0.1, {})
 
 
+def sheet_mask(contact) -> np.ndarray:
+    """Whether each vertex of the contact set's model is a sheet's, bool ``(n,)``."""
+    sheet = np.zeros(contact.model.vertex_count, dtype=bool)
+    for body in contact.model.bodies.values():
+        if body.kind == "sheet":
+            sheet[body.vertices] = True
+    return sheet
+
+
+def step_points(contact, x_n: np.ndarray, sheet: np.ndarray, rng, trial: bool) -> tuple[np.ndarray, list]:
+    """``(y, points)``: a step's end ``y`` (``x_n`` jittered by a fifth of eps) and the points evaluated on the way,
+    ``x_n``, ``y`` and, with ``trial``, a trial point whose sheet moved down past the margin (new lists, searched within
+    the step)."""
+    y = x_n + 0.2 * contact.eps * rng.normal(size=x_n.shape)
+    points = [x_n, y]
+    if trial:
+        moved = y.copy()
+        moved[sheet, 2] -= 1.2 * contact.margin
+        points.append(moved)
+    return y, points
+
+
 def _forming_run(device_sides: bool, monkeypatch) -> list:
     """A pressed Forming contact set through two steps, a trial point of the second whose sheet moved past the
     margin (new lists, searched within the step) and its end: each point's pairs, sides, batch energy and gradient and
@@ -130,19 +152,11 @@ def _forming_run(device_sides: bool, monkeypatch) -> list:
     contact, x = _forming_contact("taichi-cpu")
     rng = np.random.default_rng(7)
     x_n = x + 0.4 * contact.eps * rng.normal(size=x.shape)
-    sheet = np.zeros(len(x), dtype=bool)
-    for body in contact.model.bodies.values():
-        if body.kind == "sheet":
-            sheet[body.vertices] = True
+    sheet = sheet_mask(contact)
     out = []
     memory = contact.begin_step(x_n, None)
     for k in range(2):
-        y = x_n + 0.2 * contact.eps * rng.normal(size=x.shape)
-        points = [x_n, y]
-        if k:
-            trial = y.copy()
-            trial[sheet, 2] -= 1.2 * contact.margin
-            points.append(trial)
+        y, points = step_points(contact, x_n, sheet, rng, bool(k))
         for point in points:
             vt, ee = contact.potentials(point, x_n, memory)[:2]
             out.append([vt.pairs, vt.sides, ee.pairs, ee.sides, vt.energy(point), ee.energy(point),
