@@ -164,11 +164,10 @@ class SolverConfig:
             ``lockstep``; ignored with a position guess (``Control.position_guess``).
         inertial_start: start each step's Newton iterations at the inertia's prediction ``x^n + dt v^n`` (every
             free vertex carried on at its velocity) instead of at ``x^n``, where no position guess is given: the
-            step minimises the same potential from another first iterate, so where its minimiser is unique the
-            accepted iterate is within ``tol_velocity * dt`` of the one reached from ``x^n`` (a body at rest starts
-            where it did); a body that can rest in more than one state under static friction (a card dragged over a
-            table) may end in another. The replays of :mod:`sysid` turn it on (a kinematic replay of nominal_s101 at
-            1e-7 m/s: 15 % fewer Newton iterations; docs/benchmarks_log.md, session 57, s57-49time); off by default. Not with ``lockstep``; with ``carried_start`` the driven solids
+            step minimises the same potential from another first iterate, so its accepted iterate differs by less
+            than ``tol_velocity * dt`` from the one reached from ``x^n`` (a body at rest starts where it did). The
+            replays of :mod:`sysid` turn it on (a kinematic replay of nominal_s101 at 1e-7 m/s: docs/benchmarks_log.md,
+            session 57, s57-49time); off by default. Not with ``lockstep``; with ``carried_start`` the driven solids
             clear of contact take the effector's rigid motion instead.
         cg_precision: the storage of a lockstep batch's batched CG (``linear_solver="pcg"``): ``"mixed"`` (default)
             keeps its operator's values and its preconditioner as float32 on the device, its vectors, sums and

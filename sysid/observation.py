@@ -106,12 +106,9 @@ press-slip at eps_v x 0.55 its central differences in eps_v (step 1e-3) are 1.04
 REPLAY_INERTIAL_START = True
 """Whether a replay step's Newton iterations start at ``x^n + dt v^n`` where no guess is given
 (``SolverConfig.inertial_start``): on. A kinematic replay's steps then start where a replay through a series drive
-starts its steps' first evaluations (:meth:`sysid.replay_drive.ReplayDrive.step`, which passes that guess itself, so
-its replays are unchanged). nominal_s101's whole kinematic replay: 1,485 Newton iterations and 1,212 factorisations
-against 1,752 and 1,515 from ``x^n``; the same to the tolerance over the press and the slide's start, and later the
-card's resting state chosen otherwise (0.012 whitened RMS in the markers, the cost 5e-6 apart; each replay moves 1e-5
-when solved 10x tighter): tests/sysid/test_replay_inertial_start.py, docs/benchmarks_log.md, session 57,
-s57-49time."""
+starts its steps' first evaluations (:meth:`sysid.replay_drive.ReplayDrive.step`); the accepted iterate is the same
+step's minimiser to the tolerance (tests/sysid/test_replay_inertial_start.py; the iterations saved:
+docs/benchmarks_log.md, session 57, s57-49time)."""
 
 class ObservationWarning(UserWarning):
     """A channel cannot be fitted (absent from the recording, or not predictable)."""
