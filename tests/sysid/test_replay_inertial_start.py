@@ -2,14 +2,11 @@
 (:data:`sysid.observation.REPLAY_INERTIAL_START`, ``SolverConfig.inertial_start``) and end at the same minimiser.
 
 Each step minimises the same incremental potential from either first iterate and stops within
-:data:`sysid.observation.REPLAY_TOL_VELOCITY` of its minimiser, so over nominal_s101's first 2 s (the press, the
-dwell and the slide's start), replayed kinematically both ways, the two replays differ by the stopping error only.
-Later in the slide the card, dragged over the table under static friction, has more than one state a step can end
-in (docs/benchmarks_log.md, session 54, s54-49time) and the first iterate picks one: over the whole recording the
-two replays differ by 0.012 / 0.008 / 0.0004 whitened RMS (markers / wrench / sheet points; cost 5e-6 apart), and
-each of them solved to a tenth of the tolerance moves by 1e-5 only, so that is a choice of state, not a stopping
-error (docs/benchmarks_log.md, session 57, s57-49time). The prediction saves Newton iterations wherever the pad
-moves: nominal_s101's whole kinematic replay 1,752 -> 1,485 iterations, 1,515 -> 1,212 factorisations.
+:data:`sysid.observation.REPLAY_TOL_VELOCITY` of its minimiser, so the two replays may differ by the stopping error
+only; where the card slides on the table under the gel such an error is carried on from step to step
+(tests/sysid/test_replay_convergence.py), so nominal_s101's first 2 s (the press, the dwell and the slide's start)
+are replayed kinematically both ways and compared in noise units. The prediction saves Newton iterations wherever
+the pad moves (docs/benchmarks_log.md, session 57, s57-49time).
 """
 
 from __future__ import annotations
