@@ -452,8 +452,7 @@ class NewtonSolver:
     def _set_up_step(self, state_in: State, control: Control, dt: float, guess: np.ndarray | None,
                      info: StepInfo) -> tuple[StepTerms, np.ndarray]:
         """The step's Dirichlet data and the terms of its incremental potential, and the first iterate
-        (``guess``, else ``x^n`` or ``x^n + dt v^n`` by ``SolverConfig.inertial_start``, with the fixed vertices at
-        their targets), shape ``(n, 3)``."""
+        (``guess`` or ``x^n``, with the fixed vertices at their targets), shape ``(n, 3)``."""
         cfg = self.config
         model = self.model
         fixed, x_target, poses, openings, info.limited_effectors = self.boundary(state_in, control)
@@ -461,10 +460,7 @@ class NewtonSolver:
         if asleep:
             fixed = fixed | self._sleep.mask  # held at their positions (x_target is state_in.x there)
         (free, fixed_dofs), x_n = self._free_dofs(fixed), state_in.x
-        if guess is not None:
-            x = guess.copy()
-        else:  # x^n, or the inertia's prediction (SolverConfig.inertial_start)
-            x = x_n + dt * state_in.v if cfg.inertial_start else x_n.copy()
+        x = x_n.copy() if guess is None else guess.copy()
         if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
             carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
                                 openings, fixed, x_target, x)

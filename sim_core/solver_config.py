@@ -162,13 +162,6 @@ class SolverConfig:
             moved 0.2 mm in the air: 1 Newton iteration instead of 3). Off by default (the benchmarks'
             and the replays' steps are those from ``x^n``); the sim node turns it on. Not with
             ``lockstep``; ignored with a position guess (``Control.position_guess``).
-        inertial_start: start each step's Newton iterations at the inertia's prediction ``x^n + dt v^n`` (every
-            free vertex carried on at its velocity) instead of at ``x^n``, where no position guess is given: the
-            step minimises the same potential from another first iterate, so its accepted iterate differs by less
-            than ``tol_velocity * dt`` from the one reached from ``x^n`` (a body at rest starts where it did). The
-            replays of :mod:`sysid` turn it on (a kinematic replay of nominal_s101 at 1e-7 m/s: docs/benchmarks_log.md,
-            session 57, s57-49time); off by default. Not with ``lockstep``; with ``carried_start`` the driven solids
-            clear of contact take the effector's rigid motion instead.
         cg_precision: the storage of a lockstep batch's batched CG (``linear_solver="pcg"``): ``"mixed"`` (default)
             keeps its operator's values and its preconditioner as float32 on the device, its vectors, sums and
             factorisations float64 (:mod:`sim_core.ti_kernels.precision`); ``"double"`` everything float64. Its solves
@@ -205,7 +198,6 @@ class SolverConfig:
     sleeping: bool = False
     sleep_velocity: float = 1e-7
     carried_start: bool = False
-    inertial_start: bool = False
     cg_precision: str = "mixed"
     envelope_precision: str = "double"
 
@@ -230,9 +222,6 @@ class SolverConfig:
             raise ConfigError(f"solver sleep_velocity must be a finite number > 0 m/s, got {self.sleep_velocity!r}")
         if self.carried_start and self.lockstep:
             raise ConfigError("solver carried_start is not available with lockstep "
-                              "(a lockstep batch starts every copy at x^n)")
-        if self.inertial_start and self.lockstep:
-            raise ConfigError("solver inertial_start is not available with lockstep "
                               "(a lockstep batch starts every copy at x^n)")
         if self.sleeping and self.lockstep:
             raise ConfigError("solver sleeping is not available with lockstep (a lockstep batch solves every copy's bodies)")

@@ -103,13 +103,6 @@ and 361 refactorisations at the result for the tangents against 309; and on test
 press-slip at eps_v x 0.55 its central differences in eps_v (step 1e-3) are 1.04 % off the converged replay's
 (1e-7 unapplied: 1e-4; 1e-6 applied: 1e-6, but 912 factorisations against 768 on the kinematic 2 s)."""
 
-REPLAY_INERTIAL_START = True
-"""Whether a replay step's Newton iterations start at ``x^n + dt v^n`` where no guess is given
-(``SolverConfig.inertial_start``): on. A kinematic replay's steps then start where a replay through a series drive
-starts its steps' first evaluations (:meth:`sysid.replay_drive.ReplayDrive.step`); the accepted iterate is the same
-step's minimiser to the tolerance (tests/sysid/test_replay_inertial_start.py; the iterations saved:
-docs/benchmarks_log.md, session 57, s57-49time)."""
-
 class ObservationWarning(UserWarning):
     """A channel cannot be fitted (absent from the recording, or not predictable)."""
 
@@ -397,13 +390,12 @@ class ObservationModel:
 
     def simulation(self):
         """The (cached) ``sim_core.simulation.Simulation`` of the scene at step ``dt``, each step solved to
-        :data:`REPLAY_TOL_VELOCITY` from :data:`REPLAY_INERTIAL_START`'s first iterate, retrying a failed step in substeps (:data:`REPLAY_DT_HALVINGS`; counted in its
+        :data:`REPLAY_TOL_VELOCITY`, retrying a failed step in substeps (:data:`REPLAY_DT_HALVINGS`; counted in its
         ``step_totals``)."""
         if self._sim is None:
             # the backend starts (Taichi initialised once) with the solver; ConfigError names a problem
             config = SolverConfig(backend=backend_of_arch(self.arch), dt_halvings_on_failure=REPLAY_DT_HALVINGS,
-                                  tol_velocity=REPLAY_TOL_VELOCITY, apply_last_update=REPLAY_APPLY_LAST_UPDATE,
-                                  inertial_start=REPLAY_INERTIAL_START)
+                                  tol_velocity=REPLAY_TOL_VELOCITY, apply_last_update=REPLAY_APPLY_LAST_UPDATE)
             model = build_task_scene(self.scene, self._base_dir) if self.task else load_scene(self.scene)
             self._sim = Simulation(model, dt=self.dt, solver_config=config)
             if self.task:

@@ -187,12 +187,11 @@ docs/benchmarks_log.md, session 55, s55-49rest)."""
 
 def _lockstep_config(config: Any) -> Any:
     """The lockstep copies' solver settings from a replay's ``SolverConfig``: its tolerance, or
-    :data:`LOCKSTEP_TOL_VELOCITY` where the replay applies its last update (the lockstep stops without it); each step
-    from ``x^n`` (a lockstep batch has no ``inertial_start``)."""
+    :data:`LOCKSTEP_TOL_VELOCITY` where the replay applies its last update (the lockstep stops without it)."""
     if config.apply_last_update:
-        return dataclasses.replace(config, lockstep=True, apply_last_update=False, inertial_start=False,
+        return dataclasses.replace(config, lockstep=True, apply_last_update=False,
                                    tol_velocity=min(config.tol_velocity, LOCKSTEP_TOL_VELOCITY))
-    return dataclasses.replace(config, lockstep=True, inertial_start=False)
+    return dataclasses.replace(config, lockstep=True)
 
 
 def replay_batch_sizing(model: Any, cap: int | None = None) -> Any:
