@@ -45,14 +45,10 @@ def calibration_probe(model, params: Sequence[str], *, secant_replays: int, max_
     """A :class:`ProbeWorker` for :func:`sysid.calibration.calibrate` of ``model`` with ``params``, or None where
     its replay would not be the secant stage's first one or cannot run: no secant replay (``secant_replays``
     0), a parameter fit that may step (parameters with a budget ``max_replays`` other than one replay, or a
-    time budget ``max_time``), no secant parameter ``names`` left outside ``params``, or Taichi already started
-    in this process (:class:`ProbeWorker` forks only from a process whose Taichi it starts itself, as the commands'
-    is: a test process that ran other kernels keeps every replay here, as before). Through a drive the child
+    time budget ``max_time``), or no secant parameter ``names`` left outside ``params``. Through a drive the child
     replays through the one ``model`` holds when it is forked (set it first). Used by ``thinshell diagnose``'s
     signature stage and by ``thinshell sysid`` (:func:`sysid.fit_recording.fit_recording`)."""
-    from sim_core.ti_backend import current_arch
-
-    if not (secant_replays > 0 and max_time is None and (not params or max_replays == 1) and current_arch() is None):
+    if not (secant_replays > 0 and max_time is None and (not params or max_replays == 1)):
         return None
     names = tuple(n for n in names if n not in tuple(params))
     return ProbeWorker(model, params, names) if names else None
@@ -63,24 +59,19 @@ class ProbeWorker:
     request until closed (module docstring).
 
     Args:
-        model: the recording's :class:`~sysid.observation.ObservationModel`, before its simulation has
-            started Taichi (its kernels are then compiled here, and the child gets a copy).
+        model: the recording's :class:`~sysid.observation.ObservationModel` (the child gets a copy, forked after
+            its kernels are compiled here).
         params: the calibration's fitted parameters (their scene values are the fit's start).
         names: the secant stage's parameters (the calibration's ``secant_params`` not in ``params``).
 
     Raises:
-        ValueError: no secant parameter, or this process has started Taichi before (:func:`calibration_probe`).
+        ValueError: no secant parameter.
     """
 
     def __init__(self, model, params: Sequence[str], names: Sequence[str] = SECANT_PARAMETERS) -> None:
-        from sim_core.ti_backend import current_arch
-
         names = tuple(n for n in names if n not in tuple(params))
         if not names:
             raise ValueError("ProbeWorker: no secant parameter left to probe")
-        if current_arch() is not None:
-            raise ValueError("ProbeWorker: Taichi is started in this process; the worker forks only from a process "
-                             "whose Taichi it starts itself")
         compile_before_fork(model)
         ctx = multiprocessing.get_context("fork")
         self._conn, child = ctx.Pipe(duplex=True)
