@@ -13,12 +13,9 @@ is a deterministic function of its parameters (the simulation is reset before ea
 included: :meth:`sim_core.simulation.Simulation.reset`), so the calibration makes the same replays
 and reaches the same values as in one process; on two cores its wall time falls by about one replay.
 
-The child is forked after this process has compiled (or loaded from the offline cache) the kernels of the
-model's step (:func:`sysid.diagnose.parallel.compile_before_fork`: a kernel first compiled inside a forked child
-hangs it), so that it runs them as they are and prepares none itself: each process otherwise prepared all of them
-(nominal_s101: 28 kernels, ~9 s at the start of each process; docs/benchmarks_log.md, session 57, s57-49time). It
-sends back the replay without its states and the later replays' start
-(:func:`~sysid.calibration_secant.resume_before_contact`).
+The child is forked before this process starts Taichi (Taichi's runtime does not survive ``fork``,
+:mod:`sysid.diagnose.parallel`); it starts its own. It sends back the replay without its states and
+the later replays' start (:func:`~sysid.calibration_secant.resume_before_contact`).
 
 After the probe the child stays, its Taichi runtime warm, and makes further replays on request
 (:meth:`ProbeWorker.submit`, :meth:`ProbeWorker.collect`) until :meth:`ProbeWorker.close`: the bending
@@ -37,7 +34,6 @@ from typing import Any, Mapping, Sequence
 
 from sysid.calibration_secant import (CONTACT_ONSET_PARAMETERS, SECANT_PARAMETERS, FirstReplay, first_probe_values,
                                       resume_before_contact)
-from sysid.diagnose.parallel import compile_before_fork
 
 
 def calibration_probe(model, params: Sequence[str], *, secant_replays: int, max_replays: int | None,
@@ -45,10 +41,13 @@ def calibration_probe(model, params: Sequence[str], *, secant_replays: int, max_
     """A :class:`ProbeWorker` for :func:`sysid.calibration.calibrate` of ``model`` with ``params``, or None where
     its replay would not be the secant stage's first one or cannot run: no secant replay (``secant_replays``
     0), a parameter fit that may step (parameters with a budget ``max_replays`` other than one replay, or a
-    time budget ``max_time``), or no secant parameter ``names`` left outside ``params``. Through a drive the child
-    replays through the one ``model`` holds when it is forked (set it first). Used by ``thinshell diagnose``'s
-    signature stage and by ``thinshell sysid`` (:func:`sysid.fit_recording.fit_recording`)."""
-    if not (secant_replays > 0 and max_time is None and (not params or max_replays == 1)):
+    time budget ``max_time``), no secant parameter ``names`` left outside ``params``, or Taichi already started
+    in this process (a forked child could not run it). Through a drive the child replays through the one
+    ``model`` holds when it is forked (set it first). Used by ``thinshell diagnose``'s signature stage and by
+    ``thinshell sysid`` (:func:`sysid.fit_recording.fit_recording`)."""
+    from sim_core.ti_backend import current_arch
+
+    if not (secant_replays > 0 and max_time is None and (not params or max_replays == 1) and current_arch() is None):
         return None
     names = tuple(n for n in names if n not in tuple(params))
     return ProbeWorker(model, params, names) if names else None
@@ -59,20 +58,23 @@ class ProbeWorker:
     request until closed (module docstring).
 
     Args:
-        model: the recording's :class:`~sysid.observation.ObservationModel` (the child gets a copy, forked after
-            its kernels are compiled here).
+        model: the recording's :class:`~sysid.observation.ObservationModel`, before its simulation has
+            started Taichi (the child gets a copy).
         params: the calibration's fitted parameters (their scene values are the fit's start).
         names: the secant stage's parameters (the calibration's ``secant_params`` not in ``params``).
 
     Raises:
-        ValueError: no secant parameter.
+        ValueError: no secant parameter, or this process has started Taichi (the child could not run it).
     """
 
     def __init__(self, model, params: Sequence[str], names: Sequence[str] = SECANT_PARAMETERS) -> None:
+        from sim_core.ti_backend import current_arch
+
         names = tuple(n for n in names if n not in tuple(params))
         if not names:
             raise ValueError("ProbeWorker: no secant parameter left to probe")
-        compile_before_fork(model)
+        if current_arch() is not None:
+            raise ValueError("ProbeWorker: Taichi is started in this process; a forked child cannot run it")
         ctx = multiprocessing.get_context("fork")
         self._conn, child = ctx.Pipe(duplex=True)
         self._process = ctx.Process(target=_probe, args=(model, tuple(params), names, child), daemon=True)

@@ -54,9 +54,8 @@ print("same replay; later replays resume at step", made.resume.step)
 
 
 def test_probe_made_in_a_forked_process_is_the_replay_made_here():
-    """Run in a process of its own, whose Taichi starts with the worker: the worker compiles the model's kernels,
-    then forks, and the child runs them as compiled here (it compiles none). The child's later replays on request are
-    those made here too."""
+    """Run in a process of its own: the worker forks before Taichi starts (a test process may have
+    started it already). The child's later replays on request are those made here too."""
     from tests.sysid.conftest import reference_bag
 
     proc = subprocess.run([sys.executable, "-c", CHILD, str(reference_bag("nominal_s101"))], cwd=REPO,
