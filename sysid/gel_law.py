@@ -55,7 +55,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
-from sim_core.scenes.tactile_scene import SIMULATION_KEYS
+from sim_core.scenes.tactile_scene import SIMULATION_KEYS, default_gel_resolution
 from sysid.covariance import andrews_bandwidth, bin_scores, hac_meat, residual_bin_s, residual_times_s, time_bins
 from sysid.drive_calibration import fit_drive
 from sysid.fit import FitProblem, parameter_spec
@@ -70,6 +70,8 @@ GEL_LAWS: tuple[str, ...] = ("stable_neohookean", "green_strain")
 AUTO_LAW = "auto"
 """``simulation.gel_element`` (``thinshell diagnose`` / ``thinshell sysid --gel-element``) that asks for the law the
 recording chooses (:func:`choose_gel_law`) instead of a named one."""
+SCENE_LAW = "scene"
+"""``--gel-element`` value that replays the scene's law (else the simulator's default) without a comparison."""
 
 TACTILE = ("markers_xyz", "markers_uv", "wrench")
 """Channels whose whitened sums of squares are compared."""
@@ -444,6 +446,56 @@ def _with_law(model: ObservationModel, law: str) -> ObservationModel:
     if model.gain_profile is not None:
         out.gain_profile = type(model.gain_profile)(out, model.gain_profile.prior)
     return out
+
+
+def gel_mesh(scene: Mapping[str, Any]) -> list[int] | None:
+    """The gel's tet-box vertices ``[NX, NY, NZ]`` of the first tactile sensor of the plain scene dict ``scene``: its
+    ``simulation.gel_resolution``, else :func:`sim_core.scenes.tactile_scene.default_gel_resolution`; None where the
+    scene has no tactile sensor."""
+    sensors = list((scene.get("sensors") or {}).values())
+    if not sensors:
+        return None
+    stated = (scene.get("simulation") or {}).get("gel_resolution")
+    if stated:
+        return [int(n) for n in stated]
+    return default_gel_resolution(tuple(float(v) for v in sensors[0]["gel_size"]), float(sensors[0]["marker_pitch"]))
+
+
+def auto_not_applicable(tactile: bool, tack: bool, scene_law: str | None, laws: Sequence[str] = GEL_LAWS, *,
+                        mesh: Sequence[int] | None = None, scene_mesh: Sequence[int] | None = None) -> str | None:
+    """Why ``--gel-element auto`` keeps the scene's gel law for a recording, or None where it compares ``laws``.
+
+    The comparison needs a tactile sensor's replays (its channels carry the laws' difference), is made without the
+    tack's layer (whose stiffness :mod:`sysid.tack` fits with the scene's law) and takes the scene's law as its
+    reference, so a scene that names a law outside ``laws`` keeps it. It is made on the gel mesh the scene states
+    (:func:`gel_mesh`) or a finer one: the laws part at second order in the strain, less than a coarser mesh's own
+    error. On the quick demo's recording (this simulator's default law, a concealed gel viscoelasticity, the modulus
+    x1.5 off the start) replayed on a ``3,3,2`` mesh (the scene's ``8,6,5``), the default law's start cost is 22x its
+    cost on the scene's mesh (4.8e6 against 2.2e5) and the Green-strain law's 1.4x, so the comparison chose the
+    Green-strain law by 1.5e6 (23 null sd); on the scene's mesh it keeps the default law (costs 67,311 against
+    88,275; docs/benchmarks_log.md, session 57 "49default").
+
+    Args:
+        tactile: the recording's scene has a tactile sensor.
+        tack: the fit models the gel's tack (``--tack``).
+        scene_law: the scene's ``simulation.gel_element``, None where it names none.
+        laws: the laws compared.
+        mesh: the replays' gel mesh ``[NX, NY, NZ]`` (None: the scene's).
+        scene_mesh: the mesh the scene states (:func:`gel_mesh` of the scene without the replays' overrides).
+
+    Returns:
+        The reason in words, or None.
+    """
+    if not tactile:
+        return "the scene has no tactile sensor"
+    if tack:
+        return "--tack fits the tack's layer with the scene's law"
+    if scene_law is not None and scene_law not in laws:
+        return f"the scene names {scene_law}, which auto does not compare"
+    if mesh is not None and scene_mesh is not None and any(int(a) < int(b) for a, b in zip(mesh, scene_mesh)):
+        return (f"the replays' gel mesh {list(mesh)} is coarser than the scene's {list(scene_mesh)}: its own error "
+                "would outweigh the laws' difference")
+    return None
 
 
 def choose_at_start(model: ObservationModel, names: Sequence[str], extra: Sequence[str] = (),

@@ -127,9 +127,15 @@ def test_diagnose_with_gel_element_auto_replays_the_law_the_recording_chooses(co
     chosen, choice = with_gel_law(bag, options)
     expected = {"gel_resolution": [5, 4, 2], "gel_element": law}
     assert chosen.signatures.simulation == chosen.score.simulation == expected
-    assert choice.summary()["chosen"] == law
+    assert choice["chosen"] == law
     plain = options_from_args(build_parser().parse_args([str(bag)]))
     assert with_gel_law(bag, plain) == (plain, None)
+    # on a mesh coarser than the scene's the comparison is not made: the scene's law, and why
+    coarse = options_from_args(build_parser().parse_args([str(bag), "--gel-element", "auto",
+                                                          "--gel-resolution", "3", "3", "2"]))
+    kept, why = with_gel_law(bag, coarse)
+    assert kept.signatures.simulation == kept.score.simulation == {"gel_resolution": [3, 3, 2]}
+    assert set(why) == {"kept"} and "coarser than the scene's [5, 4, 2]" in why["kept"]
 
 
 def test_one_law_is_no_choice():
@@ -216,3 +222,36 @@ def test_the_predicted_step_end_is_the_replay_to_first_order(concealed):
             change = np.linalg.norm(replayed[ch] - raw0[ch])
             error = np.linalg.norm(replayed[ch] - moved[ch])
             assert change > 0.0 and error < bound * change, (name, ch, error / change)
+
+
+def test_auto_is_thinshell_sysids_default_and_keeps_the_scenes_law_where_no_comparison_applies():
+    """``thinshell sysid`` asks for ``auto`` unless told ``--gel-element scene`` (the scene's law, FitOptions None) or a
+    law; ``auto`` keeps the scene's law, and says why, without a tactile sensor, with the tack, where the scene
+    names a law outside the two compared, or where the replays' gel mesh is coarser than the scene's in any
+    direction."""
+    from sim_core.scenes.scene_file import load_yaml
+    from sysid.cli import build_parser, fit_options
+    from thinshell_ros.paths import bundled_scene
+    from sysid.gel_law import AUTO_LAW, GEL_LAWS, auto_not_applicable
+
+    assert fit_options(build_parser().parse_args(["bag"])).gel_element == AUTO_LAW
+    assert fit_options(build_parser().parse_args(["bag", "--gel-element", "scene"])).gel_element is None
+    assert fit_options(build_parser().parse_args(["bag", "--gel-element", "green_strain"])).gel_element == "green_strain"
+    assert auto_not_applicable(True, False, None) is None
+    for law in GEL_LAWS:
+        assert auto_not_applicable(True, False, law) is None
+    assert "tactile" in auto_not_applicable(False, False, None)
+    assert "--tack" in auto_not_applicable(True, True, None)
+    assert "modified_stvk" in auto_not_applicable(True, False, "modified_stvk")
+    # the comparison on the scene's gel mesh or a finer one, not on a coarser (the quick demo's 3,3,2)
+    from sysid.gel_law import gel_mesh
+    from tests.sysid.simbag import CARD_SCENE
+
+    assert gel_mesh(CARD_SCENE) == [5, 4, 2]
+    bundled = load_yaml(bundled_scene().read_text())
+    assert gel_mesh(bundled) == [8, 6, 5]  # the reference pad's default mesh (default_gel_resolution)
+    assert gel_mesh({"sheet": {}}) is None
+    assert auto_not_applicable(True, False, None, mesh=[8, 6, 5], scene_mesh=gel_mesh(bundled)) is None
+    assert auto_not_applicable(True, False, None, mesh=[10, 8, 6], scene_mesh=[8, 6, 5]) is None
+    assert "coarser" in auto_not_applicable(True, False, None, mesh=[3, 3, 2], scene_mesh=[8, 6, 5])
+    assert "coarser" in auto_not_applicable(True, False, None, mesh=[8, 6, 4], scene_mesh=[8, 6, 5])
