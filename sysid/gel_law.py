@@ -42,6 +42,13 @@ that fits only through a sensor gain a real cell's data sheet rules out (e.g. ma
 recorded) is not evidence for the law. (Session 53 measured the calibration's depth scale 0.39 / 0.40 under the
 Green-strain law on the deep presses stiction_s105 and gel_creep_s108 of the reference set.)
 
+**Where no comparison is made.** ``auto`` is ``thinshell sysid``'s default (``--gel-element scene``: the scene's
+law without a comparison). It keeps the scene's law, saying why (:func:`auto_not_applicable`), without a tactile
+sensor, with the tack's layer, where the scene names a law outside :data:`GEL_LAWS`, and where the replays' gel mesh
+is coarser than the one the scene states (:func:`gel_mesh`): the laws part at second order in the strain, a coarse
+mesh's locking at first (the quick demo's one-layer ``3,3,2`` replay of a four-layer recording chose the Green-strain
+law for it).
+
 This module reads a recording only through :mod:`sysid.evidence` and replays it through
 :class:`sysid.observation.ObservationModel`.
 """
