@@ -68,7 +68,8 @@ class FitOptions:
             :func:`sysid.gel_law.choose_at_start`; one replay with tangents more than the scene's law, which a fit
             with the other law takes as its first; ``thinshell sysid``'s default); the scene's law where the comparison
             does not apply (:func:`sysid.gel_law.auto_not_applicable`: no tactile sensor, ``tack``, a scene naming
-            another law, a ``gel_resolution`` coarser than the scene's; ``diagnostics.gel_law.kept`` says why); None: the scene's. ``fit.json`` reports it
+            another law, a ``gel_resolution`` coarser than the scene's; ``diagnostics.gel_law.kept`` says why); None: the
+            scene's. ``fit.json`` reports it
             (``diagnostics.gel_law``).
         arch: elastic terms of the replays: ``cpu`` / ``cuda`` (Taichi) or ``numpy``.
         jacobian: Jacobian provider (``auto``, ``sensitivity``, ``fd``).
@@ -330,9 +331,9 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     if drive is not None:
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     scene_law = (model.scene.get("simulation") or {}).get("gel_element")
+    stated = None if model.sensor is None else gel_mesh(scene_dict_for(evidence, options.scene))
     kept = auto_not_applicable(model.sensor is not None, options.tack, scene_law, mesh=simulation.get("gel_resolution"),
-                               scene_mesh=None if model.sensor is None else gel_mesh(scene_dict_for(evidence, options.scene))
-                               ) if options.gel_element == AUTO_LAW else None
+                               scene_mesh=stated) if options.gel_element == AUTO_LAW else None
     if kept is not None:
         notes = (*notes, f"{bag}: --gel-element auto keeps the scene's gel law ({kept})")
     tack = nominal_tack(model) if options.tack and model.sensor is not None else None
