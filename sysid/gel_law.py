@@ -20,10 +20,10 @@ modulus asks, the step takes back). So a law costs one replay with tangents; ``t
 replay is the one the calibration made for the fit (:mod:`sysid.calibration_secant`, ``last``) and the other law's is
 the one its fit takes as its first: one replay with tangents over a fit at the scene's law (32-35 CPU s on nominal_s101
 against ~100 for two replayed steps a law; docs/benchmarks_log.md, session 56 "49auto"). Where the other law's predicted
-cost is the smaller, the reference law takes a second step from its first step's end, replayed there
-(:func:`restep_reference`): one predicted step leaves a law far from a far start short of its own minimum, and the
-comparison would then reward the other law for the reference's unfinished step (this simulator's card press-slide with
-the quick demo's concealed viscoelasticity and hidden materials). Every replay goes through the effector's drive fitted
+cost is the smaller, each law takes a second step from its first step's end, replayed there (:func:`restep`): one
+predicted step leaves a law far from a far start short of its own minimum, and the comparison would then reward the
+law whose step got further (this simulator's card press-slide with the quick demo's concealed viscoelasticity and
+hidden materials). Every replay goes through the effector's drive fitted
 from the recording (:func:`sysid.drive_calibration.fit_drive`), with the sensor gains (force gain, marker scales,
 camera) refitted in closed form within their prior (:class:`sysid.gain_profile.GainProfile`); the tactile channels
 are compared. The laws have the same number of parameters, so the difference of their Bayesian information criteria
@@ -135,9 +135,9 @@ class GelLawChoice:
         decided: False where the best law is not the reference but its delta-BIC is within ``NULL_SIGMAS * null_sd``
             (the reference is kept: the recording does not part the laws), or it asks its sensor gains further
             outside their prior than the reference does (:attr:`beyond_prior`; module docstring).
-        restepped: the reference law took a second step from its first step's end, replayed there
-            (:func:`restep_reference`: its one step left it costlier than the other law); :attr:`steps` then holds
-            its four costs.
+        restepped: each law took a second step from its first step's end, replayed there (:func:`restep`: the
+            reference's one step left it costlier than the other law's); :attr:`steps` then holds each law's four
+            costs (start, first end predicted, first end replayed, second end predicted).
     """
 
     chosen: str
@@ -386,34 +386,37 @@ def decide(steps: Mapping[str, LawStep], reference: str, model: ObservationModel
                         steps={law: [s.start_cost, cost[law]] for law, s in steps.items()}, beyond_prior=beyond)
 
 
-def restep_reference(choice: GelLawChoice, steps: dict[str, LawStep], model: ObservationModel,
-                     names: Sequence[str], rows: np.ndarray, gain_prior: GainPrior | None, *,
-                     stepped: Sequence[str] = PROFILED, extra: Sequence[str] = (), radius: float = STEP_RADIUS,
-                     null_sigmas: float = NULL_SIGMAS) -> GelLawChoice:
-    """``choice`` made again where the other law's cost is the smaller: the reference law (``model``, its
+def restep(choice: GelLawChoice, steps: dict[str, LawStep], models: Mapping[str, ObservationModel],
+           names: Sequence[str], rows: np.ndarray, gain_prior: GainPrior | None, *,
+           stepped: Sequence[str] = PROFILED, extra: Sequence[str] = (), radius: float = STEP_RADIUS,
+           null_sigmas: float = NULL_SIGMAS) -> GelLawChoice:
+    """``choice`` made again where the other law's cost is the smaller: each law (its model in ``models``, its
     :func:`law_step` in ``steps``) takes a second step from its first step's end, replayed there with tangents, and
-    keeps the smaller of its two predicted ends (the start's replay stays its ``made``, the fit's first).
+    keeps the smaller of its two predicted ends (its start's replay stays its ``made``, a fit's first).
 
     One predicted step leaves a law short of its own minimum where its start is far off (the first order of a step
-    that lowers the cost tenfold): on this simulator's card press-slide made with the default law, a concealed gel
-    viscoelasticity and the demo's hidden materials (modulus x1.5 and friction x0.75 of the start's), the default
-    law's one step ended at 10,423 from 99,427 and the Green-strain law's at 7,133 (docs/benchmarks_log.md, session 57
-    "49default"). The law that made a recording wins after its second step; the other law is not stepped again, so the
-    rule can only keep the reference (it costs a replay with tangents of the reference where the other law leads).
-    Modifies ``steps`` in place."""
+    that lowers the cost tenfold), and the comparison then rewards the law whose step happened to get further: on this
+    simulator's card press-slide made with the default law, a concealed gel viscoelasticity and the quick demo's
+    hidden materials (modulus x1.5 and friction x0.75 of the start's) the default law's one step ended at 10,423 and
+    the Green-strain law's at 7,133; stepped twice, 2,317 against ... (docs/benchmarks_log.md, session 57
+    "49default"). Both laws are stepped again, so that neither is compared at a step the other was given beyond it
+    (the gains a law asks, :func:`beyond_prior`, fall as it nears its minimum). Costs a replay with tangents a law where
+    the other law leads. Modifies ``steps`` in place."""
     reference = choice.reference
     other = next(law for law in steps if law != reference)
     if choice.cost[other] >= choice.cost[reference]:
         return choice
-    first = steps[reference]
-    again = law_step(model, names, first.values, rows, stepped=stepped, extra=extra, radius=radius)
-    kept = again if float(again.residual @ again.residual) < float(first.residual @ first.residual) else first
-    steps[reference] = LawStep(values=kept.values, start_cost=first.start_cost, residual=kept.residual,
-                               gains=kept.gains, made=first.made)
-    out = decide(steps, reference, model, choice.channels, gain_prior, null_sigmas)
-    trail = [first.start_cost, float(first.residual @ first.residual), again.start_cost,
-             float(again.residual @ again.residual)]
-    return dataclasses.replace(out, restepped=True, steps={**(out.steps or {}), reference: trail})
+    trail = {}
+    for law, model in models.items():
+        first = steps[law]
+        again = law_step(model, names, first.values, rows, stepped=stepped, extra=extra, radius=radius)
+        kept = again if float(again.residual @ again.residual) < float(first.residual @ first.residual) else first
+        steps[law] = LawStep(values=kept.values, start_cost=first.start_cost, residual=kept.residual,
+                             gains=kept.gains, made=first.made)
+        trail[law] = [first.start_cost, float(first.residual @ first.residual), again.start_cost,
+                      float(again.residual @ again.residual)]
+    out = decide(steps, reference, models[reference], choice.channels, gain_prior, null_sigmas)
+    return dataclasses.replace(out, restepped=True, steps=trail)
 
 
 def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01, t_max: float | None = None,
@@ -475,8 +478,8 @@ def choose_gel_law(evidence, laws: Sequence[str] = GEL_LAWS, *, dt: float = 0.01
                               stepped=profile, radius=step_radius)
         models[law] = model
     choice = decide(steps, reference, models[reference], compared, gain_prior, null_sigmas)
-    return restep_reference(choice, steps, models[reference], names, rows, gain_prior, stepped=profile,
-                            radius=step_radius, null_sigmas=null_sigmas)
+    return restep(choice, steps, models, names, rows, gain_prior, stepped=profile, radius=step_radius,
+                  null_sigmas=null_sigmas)
 
 
 def _with_law(model: ObservationModel, law: str) -> ObservationModel:
@@ -580,6 +583,6 @@ def choose_at_start(model: ObservationModel, names: Sequence[str], extra: Sequen
     steps = {law: law_step(m, names, {}, rows, extra=extra, made=made if law == reference else None,
                            radius=step_radius) for law, m in models.items()}
     choice = decide(steps, reference, model, compared, gain_prior, null_sigmas)
-    choice = restep_reference(choice, steps, model, names, rows, gain_prior, extra=extra, radius=step_radius,
-                              null_sigmas=null_sigmas)
+    choice = restep(choice, steps, models, names, rows, gain_prior, extra=extra, radius=step_radius,
+                    null_sigmas=null_sigmas)
     return choice, models[choice.chosen], steps[choice.chosen].made
