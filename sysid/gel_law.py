@@ -398,8 +398,8 @@ def restep(choice: GelLawChoice, steps: dict[str, LawStep], models: Mapping[str,
     that lowers the cost tenfold), and the comparison then rewards the law whose step happened to get further: on this
     simulator's card press-slide made with the default law, a concealed gel viscoelasticity and the quick demo's
     hidden materials (modulus x1.5 and friction x0.75 of the start's) the default law's one step ended at 10,423 and
-    the Green-strain law's at 7,133; stepped twice, 2,317 against ... (docs/benchmarks_log.md, session 57
-    "49default"). Both laws are stepped again, so that neither is compared at a step the other was given beyond it
+    the Green-strain law's at 7,133; stepped twice, the default law reaches 2,317 (modulus 4.42e5 of the hidden 4.5e5)
+    and is chosen (docs/benchmarks_log.md, session 57 "49default"). Both laws are stepped again, so that neither is compared at a step the other was given beyond it
     (the gains a law asks, :func:`beyond_prior`, fall as it nears its minimum). Costs a replay with tangents a law where
     the other law leads. Modifies ``steps`` in place."""
     reference = choice.reference
