@@ -137,7 +137,8 @@ class GelLawChoice:
             outside their prior than the reference does (:attr:`beyond_prior`; module docstring).
         restepped: each law took a second step from its first step's end, replayed there (:func:`restep`: the
             reference's one step left it costlier than the other law's); :attr:`steps` then holds each law's four
-            costs (start, first end predicted, first end replayed, second end predicted).
+            costs (start, first end predicted, first end replayed, second end predicted; the first two where the first
+            step's end did not replay).
     """
 
     chosen: str
@@ -399,9 +400,10 @@ def restep(choice: GelLawChoice, steps: dict[str, LawStep], models: Mapping[str,
     simulator's card press-slide made with the default law, a concealed gel viscoelasticity and the quick demo's
     hidden materials (modulus x1.5 and friction x0.75 of the start's) the default law's one step ended at 10,423 and
     the Green-strain law's at 7,133; stepped twice, the default law reaches 2,317 (modulus 4.42e5 of the hidden 4.5e5)
-    and is chosen (docs/benchmarks_log.md, session 57 "49default"). Both laws are stepped again, so that neither is compared at a step the other was given beyond it
-    (the gains a law asks, :func:`beyond_prior`, fall as it nears its minimum). Costs a replay with tangents a law where
-    the other law leads. Modifies ``steps`` in place."""
+    and is chosen (docs/benchmarks_log.md, session 57 "49default"). Both laws are stepped again, so that neither is
+    compared at a step the other was given beyond it (the gains a law asks, :func:`beyond_prior`, fall as it nears its
+    minimum). A law whose replay at its first step's end diverges keeps its first step. Costs a replay with tangents a
+    law where the other law leads. Modifies ``steps`` in place."""
     reference = choice.reference
     other = next(law for law in steps if law != reference)
     if choice.cost[other] >= choice.cost[reference]:
@@ -409,12 +411,16 @@ def restep(choice: GelLawChoice, steps: dict[str, LawStep], models: Mapping[str,
     trail = {}
     for law, model in models.items():
         first = steps[law]
-        again = law_step(model, names, first.values, rows, stepped=stepped, extra=extra, radius=radius)
-        kept = again if float(again.residual @ again.residual) < float(first.residual @ first.residual) else first
-        steps[law] = LawStep(values=kept.values, start_cost=first.start_cost, residual=kept.residual,
-                             gains=kept.gains, made=first.made)
-        trail[law] = [first.start_cost, float(first.residual @ first.residual), again.start_cost,
-                      float(again.residual @ again.residual)]
+        end = float(first.residual @ first.residual)
+        try:
+            again = law_step(model, names, first.values, rows, stepped=stepped, extra=extra, radius=radius)
+        except CalibrationError:  # the first step's end does not replay: that step stands
+            trail[law] = [first.start_cost, end]
+            continue
+        if float(again.residual @ again.residual) < end:
+            steps[law] = LawStep(values=again.values, start_cost=first.start_cost, residual=again.residual,
+                                 gains=again.gains, made=first.made)
+        trail[law] = [first.start_cost, end, again.start_cost, float(again.residual @ again.residual)]
     out = decide(steps, reference, models[reference], choice.channels, gain_prior, null_sigmas)
     return dataclasses.replace(out, restepped=True, steps=trail)
 
