@@ -334,7 +334,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     stated = None if model.sensor is None else gel_mesh(scene_dict_for(evidence, options.scene))
     kept = auto_not_applicable(model.sensor is not None, options.tack, scene_law, mesh=simulation.get("gel_resolution"),
                                scene_mesh=stated) if options.gel_element == AUTO_LAW else None
-    if kept is not None:
+    if kept is not None and model.sensor is not None:  # without one, reading the bag said so (no gel to choose for)
         notes = (*notes, f"{bag}: --gel-element auto keeps the scene's gel law ({kept})")
     tack = nominal_tack(model) if options.tack and model.sensor is not None else None
     layer_on = tack is not None and SHEAR_STIFFNESS_SETTING in (tack.params or {})
