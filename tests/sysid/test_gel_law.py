@@ -17,7 +17,6 @@ a change from the scene's law only beyond the comparison's spread under the null
   (delta-BIC 21 / 64, session 53), keeps the default law from x0.7, x1.3 and x2 (the laws' costs within 1 / 9 / 1).
 - The null spread is the long-run standard deviation of ``2 e.g``: checked against the spread of many noise draws,
   white and time-correlated.
-
 - The quick demo's case (the card scene made on its default four-layer mesh with the demo's hidden materials and
   concealed viscoelasticity) keeps the default law after both laws' second step; replayed on one tet layer the
   comparison would take the Green-strain law for the mesh's locking, so ``thinshell sysid``'s default makes none there.
