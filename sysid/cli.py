@@ -4,7 +4,7 @@ Usage::
 
     thinshell sysid BAG [--scene S] [--params a,b,c] [--out DIR] [--force] [--global] [--max-time T]
                         [--dt DT] [--t-max SECONDS] [--recording-map FILE] [--t-start S] [--t-end S] [--jacobian auto|fd|sensitivity] [--write-scene S]
-                        [--robust hac|block_bootstrap|none] [--nuisance NAME=PRIOR,...|none] [--gel-element LAW|auto] [...]
+                        [--robust hac|block_bootstrap|none] [--nuisance NAME=PRIOR,...|none] [--gel-element LAW|auto|scene] [...]
 
 Parses the options into :class:`sysid.fit_recording.FitOptions` and runs
 :func:`sysid.fit_recording.fit_recording`: the bag is read into an evidence bundle, its effector
@@ -29,7 +29,7 @@ from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_ROBUST_SIGMA, STOP_SIGMA, SYSID_STOP_RMS,
                        STOP_TRIAL_SIGMA)
 from sysid.fit_recording import FitOptions, fit_recording
-from sysid.gel_law import AUTO_LAW
+from sysid.gel_law import AUTO_LAW, SCENE_LAW
 from sim_core.batch.sizing import batch_size_arg
 
 PROG = "thinshell sysid"
@@ -89,8 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="elastic terms of the replays: Taichi kernels on cpu/cuda (default: %(default)s; "
                         "same values as numpy to round-off, about 1.3x faster replays) or the NumPy reference")
     p.add_argument("--gel-resolution", help="override the gel tet resolution NX,NY,NZ (faster, coarser)")
-    p.add_argument("--gel-element", choices=(*SOLID_ELEMENTS, AUTO_LAW),
-                   help="the gel's element and law in every replay (default: the scene's, else stable_neohookean; "
+    p.add_argument("--gel-element", choices=(*SOLID_ELEMENTS, AUTO_LAW, SCENE_LAW), default=AUTO_LAW,
+                   help="the gel's element and law in every replay (default: auto; scene: the scene's, else "
+                        "stable_neohookean; "
                         "green_strain: Saint Venant-Kirchhoff, whose pressed gel softens while it is sheared, "
                         "docs/known_answers.md; modified_stvk: its shear with a volumetric energy in ln J that keeps "
                         "J > 0 (no collapse in deep presses; not in auto's comparison); auto: the recording's choice "
@@ -99,8 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "modulus, friction and stick speed moved by one Levenberg-Marquardt step predicted on its "
                         "start replay's tangents, sensor gains refitted (one replay with tangents more than the scene's "
                         "law), the scene's law kept unless the other wins beyond twice the delta-BIC's spread under the "
-                        "null); "
-                        "fit.json diagnostics.gel_law reports it")
+                        "null; the scene's law where the scene has no tactile sensor, with --tack, where it names "
+                        "another law, or with a --gel-resolution coarser than the scene's, whose own error outweighs "
+                        "the laws' difference); fit.json diagnostics.gel_law reports it")
     p.add_argument("--seed", type=int, default=0, help="seed of the global phase")
     p.add_argument("--workers", type=int, default=1, help="processes for batched replays")
     p.add_argument("--batched", action="store_true",
@@ -282,7 +284,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       recording_map=args.recording_map, t_start=args.t_start, t_end=args.t_end,
                       nuisance=_nuisance_arg(args.nuisance),
                       channels=None if channels is None else tuple(channels), gel_resolution=resolution,
-                      gel_element=args.gel_element,
+                      gel_element=None if args.gel_element == SCENE_LAW else args.gel_element,
                       arch=args.arch, jacobian=args.jacobian, fd_step=args.fd_step,
                       global_method=args.global_method if args.global_search else None,
                       global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,

@@ -34,10 +34,10 @@ from sysid.gain_prior import GainPrior
 from sysid.gain_profile import GainProfile
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, STOP_ROBUST_SIGMA, STOP_SIGMA, SYSID_STOP_RMS, STOP_TRIAL_SIGMA, Evaluation,
                        FitResult, fit, joint_tangent_names)
-from sysid.gel_law import AUTO_LAW, choose_at_start
+from sysid.gel_law import AUTO_LAW, auto_not_applicable, choose_at_start, gel_mesh
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.jacobians import TangentReplay, make_jacobian
-from sysid.observation import ObservationModel, SimTrace
+from sysid.observation import ObservationModel, SimTrace, scene_dict_for
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
 from sysid.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
@@ -66,8 +66,11 @@ class FitOptions:
             calibrated, each law's modulus, friction and stick speed stepped once on its start replay's tangents, the
             scene's law kept unless the other is better beyond the comparison's spread under the null,
             :func:`sysid.gel_law.choose_at_start`; one replay with tangents more than the scene's law, which a fit
-            with the other law takes as its first); None: the scene's. ``fit.json`` reports it
-            (``diagnostics.gel_law``). Not with ``tack``.
+            with the other law takes as its first; ``thinshell sysid``'s default); the scene's law where the comparison
+            does not apply (:func:`sysid.gel_law.auto_not_applicable`: no tactile sensor, ``tack``, a scene naming
+            another law, a ``gel_resolution`` coarser than the scene's; ``diagnostics.gel_law.kept`` says why); None: the
+            scene's. ``fit.json`` reports it
+            (``diagnostics.gel_law``).
         arch: elastic terms of the replays: ``cpu`` / ``cuda`` (Taichi) or ``numpy``.
         jacobian: Jacobian provider (``auto``, ``sensitivity``, ``fd``).
         fd_step: finite-difference step in log units.
@@ -327,10 +330,12 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     drive = fit_drive(model) if options.drive and model.sensor is not None else None
     if drive is not None:
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
-    if options.gel_element == AUTO_LAW and (model.sensor is None or options.tack):
-        raise ConfigError(f"{bag}: --gel-element auto compares the gel laws on a tactile sensor's replays without the "
-                          f"tack ({'the scene has no tactile sensor' if model.sensor is None else '--tack given'}); "
-                          "name the law instead")
+    scene_law = (model.scene.get("simulation") or {}).get("gel_element")
+    stated = None if model.sensor is None else gel_mesh(scene_dict_for(evidence, options.scene))
+    kept = auto_not_applicable(model.sensor is not None, options.tack, scene_law, mesh=simulation.get("gel_resolution"),
+                               scene_mesh=stated) if options.gel_element == AUTO_LAW else None
+    if kept is not None and model.sensor is not None:  # without one, reading the bag said so (no gel to choose for)
+        notes = (*notes, f"{bag}: --gel-element auto keeps the scene's gel law ({kept})")
     tack = nominal_tack(model) if options.tack and model.sensor is not None else None
     layer_on = tack is not None and SHEAR_STIFFNESS_SETTING in (tack.params or {})
     if SHEAR_STIFFNESS_SETTING in options.params and not layer_on:
@@ -385,7 +390,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                     first_step=options.first_step, reweight_channels=layer_on)
     start = made.pop() if made else None
     law = None
-    if options.gel_element == AUTO_LAW:  # one replay with tangents of the other law, handed to its fit if chosen
+    if options.gel_element == AUTO_LAW and kept is None:  # the other law's replay with tangents, its fit's first
         cold = options.robust is not None and not options.warm_start  # as sysid.fit.fit takes the nuisance columns
         extra = [n for n in nuisance if n not in fitted] if cold else []
         law, model, start = choose_at_start(model, fitted, extra, start,
@@ -423,7 +428,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     doc["diagnostics"]["gel_law"] = {"element": (model.scene.get("simulation") or {}).get("gel_element",
                                                                                       SIMULATION_KEYS["gel_element"]),
                                      "requested": options.gel_element or "scene",
-                                     "choice": None if law is None else law.summary()}
+                                     "choice": None if law is None else law.summary(),
+                                     **({} if kept is None else {"kept": kept})}
     # the fitted scene is built (and checked) before anything is written
     scene_doc = None if write_scene is None else fitted_scene_from_result(
         result, evidence, options.t_max, calibrated=None if sensor is None else sensor.params)

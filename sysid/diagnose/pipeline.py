@@ -35,7 +35,9 @@ apply to that stage.
 :func:`sysid.gel_law.choose_gel_law`: each law's modulus, friction and stick speed moved from the scene's values by one
 Levenberg-Marquardt step predicted on a replay's tangents, sensor gains refitted, a replay with tangents a law, the
 scene's law kept unless the other's whitened sum of squares is smaller beyond twice its spread under the null); the
-choice is in ``extra.pipeline.gel_law``, and both stages replay that law.
+choice is in ``extra.pipeline.gel_law``, and both stages replay that law; where the comparison does not apply (no
+tactile channel, a scene naming another law, replays on a gel mesh coarser than the scene's:
+:func:`sysid.gel_law.auto_not_applicable`) the scene's law is kept and ``extra.pipeline.gel_law.kept`` says why.
 """
 
 from __future__ import annotations
@@ -142,17 +144,21 @@ def premise(bag: str | Path, settings: SignatureSettings) -> Premise:
                    "the missing effect", **sensor)
 
 
-def with_gel_law(bag: str | Path, options: PipelineOptions) -> tuple[PipelineOptions, Any]:
-    """``(options, choice)``: where ``options`` ask for the gel law :data:`AUTO_LAW`, the options with the law the
+def with_gel_law(bag: str | Path, options: PipelineOptions) -> tuple[PipelineOptions, dict[str, Any] | None]:
+    """``(options, report)``: where ``options`` ask for the gel law :data:`AUTO_LAW`, the options with the law the
     recording chooses (:func:`sysid.gel_law.choose_gel_law`, read as the signature stage's settings say) in both
-    stages' ``simulation`` and the :class:`sysid.gel_law.GelLawChoice`; else ``options`` unchanged and None.
+    stages' ``simulation`` and the choice's summary (:meth:`sysid.gel_law.GelLawChoice.summary`), or, where the
+    comparison does not apply (:func:`sysid.gel_law.auto_not_applicable`: no tactile channel, a scene naming another
+    law, a ``gel_resolution`` coarser than the scene's), the scene's law and ``{"kept": reason}``; else ``options``
+    unchanged and None.
 
     Raises:
         BagReadError: unreadable recording.
         ConfigError: invalid scene.
     """
     from sysid.evidence import load_evidence
-    from sysid.gel_law import choose_gel_law
+    from sysid.gel_law import TACTILE, auto_not_applicable, choose_gel_law, gel_mesh
+    from sysid.observation import scene_dict_for
 
     s = options.signatures
     simulation = dict(s.simulation or {})
@@ -161,10 +167,17 @@ def with_gel_law(bag: str | Path, options: PipelineOptions) -> tuple[PipelineOpt
     del simulation["gel_element"]
     evidence = load_evidence(bag, include_image="auto", recording_map=s.recording_map, t_start=s.t_start,
                              t_end=s.t_end)
-    choice = choose_gel_law(evidence, dt=s.dt, t_max=s.t_max, arch=s.arch, simulation=simulation)
-    chosen = {**simulation, "gel_element": choice.chosen}
+    scene = scene_dict_for(evidence)
+    kept = auto_not_applicable(any(ch in evidence.channels_present for ch in TACTILE), False,
+                               (scene.get("simulation") or {}).get("gel_element"),
+                               mesh=simulation.get("gel_resolution"), scene_mesh=gel_mesh(scene))
+    if kept is not None:
+        chosen, report = simulation or None, {"kept": kept}
+    else:
+        choice = choose_gel_law(evidence, dt=s.dt, t_max=s.t_max, arch=s.arch, simulation=simulation)
+        chosen, report = {**simulation, "gel_element": choice.chosen}, choice.summary()
     return replace(options, signatures=replace(s, simulation=chosen),
-                   score=replace(options.score, simulation=chosen)), choice
+                   score=replace(options.score, simulation=chosen)), report
 
 
 def _stamp(doc: dict[str, Any], prem: Premise, options: PipelineOptions, wall_s: float) -> dict[str, Any]:
@@ -210,7 +223,7 @@ def diagnose_recordings(bags: Sequence[str | Path], options: PipelineOptions) ->
     docs: list[dict[str, Any]] = []
     runs: list[Any] = []
     baselines = None
-    for bag, prem, (opts, choice) in zip(bags, premises, laws):
+    for bag, prem, (opts, law) in zip(bags, premises, laws):
         t0 = time.monotonic()
         if prem.stage == SCORE:
             doc, (run,) = run_diagnosis([bag], opts.heldout, opts.params, opts.score, opts.project,
@@ -222,8 +235,8 @@ def diagnose_recordings(bags: Sequence[str | Path], options: PipelineOptions) ->
                                                           opts.signatures.workers, opts.ray_address)
             doc, run = diagnose_one(bag, settings=opts.signatures, baseline_prepared=baselines, prepared=first)
         doc = _stamp(doc, prem, opts, time.monotonic() - t0)
-        if choice is not None:
-            doc["extra"]["pipeline"]["gel_law"] = choice.summary()
+        if law is not None:
+            doc["extra"]["pipeline"]["gel_law"] = law
         validate_report(doc)
         docs.append(doc)
         runs.append(run)

@@ -176,12 +176,12 @@ def test_diagnose_and_sysid_take_the_drive_by_default():
 
 def test_the_gel_law_reaches_the_fits_replays_and_fit_json_names_it(press_bag, tmp_path, capsys):
     """``--gel-element green_strain`` replays the gel with that law (the press's first replay differs from the scene's
-    Stable Neo-Hookean gel's) and fit.json's ``diagnostics.gel_law`` names the law of each fit; an unknown law is
+    Stable Neo-Hookean gel's, ``--gel-element scene``) and fit.json's ``diagnostics.gel_law`` names the law of each fit; an unknown law is
     refused naming the choices. (``auto`` end to end: tests/sysid/test_gel_law.py.)"""
     docs = {}
     for law in ("scene", "green_strain"):
         out = tmp_path / law
-        rc = sysid_main([str(press_bag), "--out", str(out), *FAST, *(() if law == "scene" else ("--gel-element", law))])
+        rc = sysid_main([str(press_bag), "--out", str(out), *FAST, "--gel-element", law])
         assert rc == 0, capsys.readouterr().err
         docs[law] = load_fit_json(out / "fit.json")
     assert docs["scene"]["diagnostics"]["gel_law"] == {"element": "stable_neohookean", "requested": "scene", "choice": None}
