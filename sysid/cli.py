@@ -137,12 +137,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "where the data choose it (delta-BIC over a kinematic arm > 10; the fit's Jacobian stays "
                         "analytic through the drive); kept kinematic, with the reason in fit.json, elsewhere. "
                         "Default: on, as in thinshell diagnose; --no-drive: the recorded pose driven kinematically")
-    p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=False,
+    p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=True,
                    help="where the recording shows the card carried up by the gel (a lift), replay the gel's tack "
                         "(adhesion bonds of four card weights a pair) released at the peel read from the recording, "
                         "kept where it follows the recorded card better than no tack, with a compliant shear layer "
                         "whose stiffness is fitted from the carried card where it follows better still (sysid.tack; "
-                        "fit.json diagnostics.tack). Default: off (docs/benchmarks_log.md, sessions 52-53)")
+                        "fit.json diagnostics.tack). Default: on, the recording decides (no carried row: no tack, "
+                        "no replay); --no-tack: a lift's card stays on the table (docs/benchmarks_log.md, session 57)")
     p.add_argument("--wrench-check", action=argparse.BooleanOptionalAction, default=True,
                    help="judge the recorded wrench against the gel's own marker shear by 0.1 s window and leave the "
                         "rows where the force opposes it (no force ON the gel does; INTERFACES.md) out of the fit and "

@@ -67,7 +67,8 @@ class FitOptions:
             scene's law kept unless the other is better beyond the comparison's spread under the null,
             :func:`sysid.gel_law.choose_at_start`; one replay with tangents more than the scene's law, which a fit
             with the other law takes as its first); None: the scene's. ``fit.json`` reports it
-            (``diagnostics.gel_law``). Not with ``tack``.
+            (``diagnostics.gel_law``). Where the tack is on, the scene's law (``diagnostics.gel_law.kept``: the
+            comparison is made on replays without the tack).
         arch: elastic terms of the replays: ``cpu`` / ``cuda`` (Taichi) or ``numpy``.
         jacobian: Jacobian provider (``auto``, ``sensitivity``, ``fd``).
         fd_step: finite-difference step in log units.
@@ -119,10 +120,11 @@ class FitOptions:
             nominal model, released at the recorded peel, with its compliant shear layer fitted from the carried card
             where it follows better (:func:`sysid.tack.nominal_tack`), then its ``k_t`` fitted jointly with the
             materials (its tangent column; each channel weighed by its gap at the fit's start);
-            fit.json ``diagnostics.tack`` says what was decided and why. False (the default): no tack, a lift's card
-            stays on the table in every replay (nominal_s109's sheet points at whitened RMS 82 at the engine's
-            values; 7.6 with the layer). Not the default: from starts 30 % off on nominal_s109 the bending
-            lands +12 to +27 % and the friction -21 to -30 % (docs/benchmarks_log.md, session 55, s55-49lift).
+            fit.json ``diagnostics.tack`` says what was decided and why. True (the default): the recording decides
+            (no carried row: no tack and no replay, the replay backend not started by the decision; carried rows:
+            the tack kept by :func:`sysid.tack.tack_margin`); nominal_s109's sheet points at the engine's values
+            whitened RMS 82 without it, 8.4 with the layer (docs/benchmarks_log.md, sessions 56-57). False: no
+            tack, a lift's card stays on the table in every replay.
         hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely
@@ -186,7 +188,7 @@ class FitOptions:
     robust: str | None = DEFAULT_ROBUST_METHOD
     drive: bool = True
     profile_gains: bool = True
-    tack: bool = False
+    tack: bool = True
     hold_unidentified: bool = True
     first_step: float | None = FIRST_STEP
     fit_eps_v: bool = True
@@ -327,12 +329,15 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     drive = fit_drive(model) if options.drive and model.sensor is not None else None
     if drive is not None:
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
-    if options.gel_element == AUTO_LAW and (model.sensor is None or options.tack):
-        raise ConfigError(f"{bag}: --gel-element auto compares the gel laws on a tactile sensor's replays without the "
-                          f"tack ({'the scene has no tactile sensor' if model.sensor is None else '--tack given'}); "
-                          "name the law instead")
+    if options.gel_element == AUTO_LAW and model.sensor is None:
+        raise ConfigError(f"{bag}: --gel-element auto compares the gel laws on a tactile sensor's replays; the scene "
+                          "has no tactile sensor: name the law instead")
     tack = nominal_tack(model) if options.tack and model.sensor is not None else None
     layer_on = tack is not None and SHEAR_STIFFNESS_SETTING in (tack.params or {})
+    law_kept = None  # auto compares the laws on replays without the tack: where the tack is on, the scene's law
+    if options.gel_element == AUTO_LAW and tack is not None and tack.on:
+        law_kept = ("the scene's law: the recording's nominal model has the gel's tack, and the laws' comparison "
+                    "(sysid.gel_law.choose_at_start) is made on replays without it")
     if SHEAR_STIFFNESS_SETTING in options.params and not layer_on:
         raise ConfigError(f"{bag}: --params names {SHEAR_STIFFNESS_SETTING}, but the tack's compliant shear layer "
                           f"is not part of this recording's nominal model (give --tack; the tack's decision: "
@@ -385,7 +390,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                     first_step=options.first_step, reweight_channels=layer_on)
     start = made.pop() if made else None
     law = None
-    if options.gel_element == AUTO_LAW:  # one replay with tangents of the other law, handed to its fit if chosen
+    if options.gel_element == AUTO_LAW and law_kept is None:  # one replay with tangents of the other law, handed
+        # to its fit if chosen
         cold = options.robust is not None and not options.warm_start  # as sysid.fit.fit takes the nuisance columns
         extra = [n for n in nuisance if n not in fitted] if cold else []
         law, model, start = choose_at_start(model, fitted, extra, start,
@@ -424,6 +430,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                                                                                       SIMULATION_KEYS["gel_element"]),
                                      "requested": options.gel_element or "scene",
                                      "choice": None if law is None else law.summary()}
+    if law_kept is not None:
+        doc["diagnostics"]["gel_law"]["kept"] = law_kept
     # the fitted scene is built (and checked) before anything is written
     scene_doc = None if write_scene is None else fitted_scene_from_result(
         result, evidence, options.t_max, calibrated=None if sensor is None else sensor.params)

@@ -129,12 +129,24 @@ def _face_corners(model) -> np.ndarray:
     return np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
 
 
-def carried_rows(model, opening: float) -> np.ndarray:
+def scene_model(model):
+    """The simulator model of ``model``'s scene, read without starting the replay backend (a scene file is parsed;
+    a task scene's model is its simulation's): the tack's decision on a recording with no carried row makes no
+    replay, so the calibration's probe can still fork before Taichi starts (:mod:`sysid.diagnose.probe_worker`)."""
+    if model.task:
+        return model.simulation().model
+    from sim_core.scenes import load_scene
+
+    return load_scene(model.scene)
+
+
+def carried_rows(model, opening: float, sim_model=None) -> np.ndarray:
     """Sheet-point rows in which the recording shows the card carried by the gel (module docstring, step 1).
 
     Args:
         model: the :class:`~sysid.observation.ObservationModel` (``sheet_points`` and ``pose`` recorded).
         opening: the bonds' release opening, m (> 0).
+        sim_model: the scene's simulator model (its sensor mount; None: :func:`scene_model`).
 
     Returns:
         bool ``(n,)`` over the recorded sheet-point rows (all False without sheet points or a sensor).
@@ -145,7 +157,7 @@ def carried_rows(model, opening: float) -> np.ndarray:
     t = np.asarray(ev.t_ns["sheet_points"], dtype=np.int64)
     sheet = np.asarray(ev.values("sheet_points"), dtype=float)
     pose = resample_pose(ev.t_ns["pose"], ev.pose, t, outside="clamp")
-    mount = model.simulation().model.sensors[model.sensor].mount
+    mount = (scene_model(model) if sim_model is None else sim_model).sensors[model.sensor].mount
     local = _face_corners(model)
     rest_z = sheet[0, :, 2]
     out = np.zeros(t.size, bool)
@@ -176,15 +188,16 @@ def nominal_tack(model, params: dict[str, float] | None = None, shear_layer: boo
     Raises:
         SimulationDivergedError: the replay with the bonds diverged.
     """
-    sim = model.simulation()
-    beta = ADHESION_PROBE_WEIGHTS * adhesion_weight_scale(sim.model)
+    scene = scene_model(model)  # no replay backend started where the recording decides without a replay
+    beta = ADHESION_PROBE_WEIGHTS * adhesion_weight_scale(scene)
     if not (math.isfinite(beta) and beta > 0.0):
         return TackDecision(False, "no card weight to carry (no sheet, gravity or gel face)")
     opening = CandidateHook({"adhesion": beta}).setting("adhesion.release")
-    rows = carried_rows(model, opening)
+    rows = carried_rows(model, opening, scene)
     if not rows.any():
         return TackDecision(False, "the recorded card is never carried by the gel (it stays within "
                                    f"{opening * 1e3:.2g} mm of where it lay wherever the gel is over it)")
+    sim = model.simulation()
     ev = model.evidence
     t_sheet = (np.asarray(ev.t_ns["sheet_points"], dtype=np.int64) - int(ev.start_ns)) * 1e-9
     data = np.asarray(ev.values("sheet_points"), dtype=float)
