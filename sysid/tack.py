@@ -8,10 +8,12 @@ the card on the table while the recording shows it 20 mm up. Measured on nominal
 "4 mm" of session 51), the replay's card staying flat while the recorded one rises with the gel. The gel's
 markers and wrench hardly see it (2.56 / 3.62 / 2.09), so a fit of the materials cannot find it.
 
-``thinshell sysid --tack`` (:class:`sysid.fit_recording.FitOptions` ``tack``; off by default, see there) gives
-the nominal model the tack wherever the recording shows the card carried:
+``thinshell sysid`` (:class:`sysid.fit_recording.FitOptions` ``tack``, on by default; ``--no-tack`` leaves it out)
+gives the nominal model the tack wherever the recording shows the card carried, a data rule:
 
-1. from the recording alone (:func:`carried_rows`): rows where the gel's face (its footprint at the measured
+1. from the recording alone (:func:`carried_rows`, read on the scene's model without starting the replay backend:
+   a recording with no carried row makes no replay, and the calibration's probe still forks before Taichi
+   starts): rows where the gel's face (its footprint at the measured
    pose) stands more than the bond's release opening above where the card under it lay at the start, and the
    recorded card under it has risen by more than that opening and is within it of the face: the card rises
    with the gel. No row: no tack, no extra replay (seven of the nine reference recordings; the press-slides
@@ -45,7 +47,7 @@ nominal_s109 at the engine's values, sheet points' whitened RMS over the recordi
 32.1, the compliant layer (k_t 2.64 N/m a pair, fitted) 7.59, markers 2.56 -> 1.44 (docs/benchmarks_log.md,
 session 53). The rigid shear bonds of the coupled law (``adhesion.shear``) read 41: the fold needs the compliance.
 
-Still opt-in (``thinshell sysid --tack``). Session 53: from +-30 % starts the materials did not come back (s109
+History of the fit with the tack (opt-in ``--tack`` until session 57). Session 53: from +-30 % starts the materials did not come back (s109
 -30 %: modulus -64 %, friction -50 %) and from the scene the friction landed at -27 %, with the force gain on its bound
 (the reference records the bonds' force with the card's sign). Session 54 (docs/benchmarks_log.md, s54-49lift): with
 that phase's wrench rows left out (:mod:`sysid.wrench_check`) the force gain is 1.01-1.14, inside its prior; with
@@ -64,7 +66,12 @@ springs (:data:`LAYER_NORMAL_RATIO`), at the engine's values (k_t 3): the lift's
 error (own world nominal_s301: 0.39-0.70 -> 0.08-0.11 mm, the noise), s109 whitened RMS 9.4 -> 8.4, and the engine's
 values now follow the card better than the +30 % end's (8.4 against 10.4). Half of what is left is the released
 card's fall (the replay's card, undamped, lands in 30 ms where the recorded one takes 80; a sheet drag of 37 1/s takes
-s109 to 6.6); docs/benchmarks_log.md, session 56.
+s109 to 6.6); docs/benchmarks_log.md, session 56. Both sides of that fall are time steps, not missing physics
+(session 57): a card let go from 18 mm falls as the rigid rod pinned at its edge (49.9 ms), which this simulator
+follows at 1 ms steps within 0.24 mm, while the replay's 10 ms backward Euler step runs ahead of it by its
+first-order lead (tests/sim_core/test_known_answers_card_fall.py); the reference engine's 1 ms step with the flex's
+Rayleigh damping (0.002 s) slows the same fall to 61 ms, 50.8 ms at 0.25 ms (benchmarks/mujoco_world/fall_answers.py).
+A drag fitted to it would copy the engine's integrator into a parameter; none is added.
 """
 
 from __future__ import annotations
