@@ -340,8 +340,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                     "(sysid.gel_law.choose_at_start) is made on replays without it")
     if SHEAR_STIFFNESS_SETTING in options.params and not layer_on:
         raise ConfigError(f"{bag}: --params names {SHEAR_STIFFNESS_SETTING}, but the tack's compliant shear layer "
-                          f"is not part of this recording's nominal model (give --tack; the tack's decision: "
-                          f"{'not asked' if tack is None else tack.why})")
+                          f"is not part of this recording's nominal model (the tack's decision: "
+                          f"{'not decided: --no-tack, or no tactile sensor' if tack is None else tack.why})")
     jacobian = options.jacobian
     sensor = None
     calibrating = (options.sensor_calibration or calibrated) and model.sensor is not None  # a task scene may have none
