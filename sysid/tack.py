@@ -71,7 +71,10 @@ s109 to 6.6); docs/benchmarks_log.md, session 56. Both sides of that fall are ti
 follows at 1 ms steps within 0.24 mm, while the replay's 10 ms backward Euler step runs ahead of it by its
 first-order lead (tests/sim_core/test_known_answers_card_fall.py); the reference engine's 1 ms step with the flex's
 Rayleigh damping (0.002 s) slows the same fall to 61 ms, 50.8 ms at 0.25 ms (benchmarks/mujoco_world/fall_answers.py).
-A drag fitted to it would copy the engine's integrator into a parameter; none is added.
+A drag fitted to it would copy the engine's integrator into a parameter; none is added. On by default, nominal_s109's
+fits stop after 0-2 iterations from every start: at the peel the folded card is arched against the gel face and the
+bonds let go at once, so friction on that contact holds the released card or not, a threshold (friction 0.6347 at the
+-30 % start's first step) on whose far side the cost is 126x (docs/benchmarks_log.md, session 57, s57-49lift).
 """
 
 from __future__ import annotations
