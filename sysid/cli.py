@@ -144,7 +144,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "(adhesion bonds of four card weights a pair) released at the peel read from the recording, "
                         "kept where it follows the recorded card better than no tack, with a compliant shear layer "
                         "whose stiffness is fitted from the carried card where it follows better still (sysid.tack; "
-                        "fit.json diagnostics.tack). Default: off (docs/benchmarks_log.md, sessions 52-53)")
+                        "fit.json diagnostics.tack; the recording decides: no carried row, no tack and no replay). "
+                        "Default: off, a lift's card stays on the table (on nominal_s109 the fit with the tack stops "
+                        "at the released card's stick / slip threshold with the friction outside its interval: "
+                        "docs/benchmarks_log.md, session 57)")
     p.add_argument("--wrench-check", action=argparse.BooleanOptionalAction, default=True,
                    help="judge the recorded wrench against the gel's own marker shear by 0.1 s window and leave the "
                         "rows where the force opposes it (no force ON the gel does; INTERFACES.md) out of the fit and "

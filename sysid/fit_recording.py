@@ -67,10 +67,10 @@ class FitOptions:
             scene's law kept unless the other is better beyond the comparison's spread under the null,
             :func:`sysid.gel_law.choose_at_start`; one replay with tangents more than the scene's law, which a fit
             with the other law takes as its first; ``thinshell sysid``'s default); the scene's law where the comparison
-            does not apply (:func:`sysid.gel_law.auto_not_applicable`: no tactile sensor, ``tack``, a scene naming
-            another law, a ``gel_resolution`` coarser than the scene's; ``diagnostics.gel_law.kept`` says why); None: the
-            scene's. ``fit.json`` reports it
-            (``diagnostics.gel_law``).
+            does not apply (:func:`sysid.gel_law.auto_not_applicable`: no tactile sensor, the tack on (its layer is
+            fitted with the scene's law; the comparison is made on replays without it), a scene naming another law, a
+            ``gel_resolution`` coarser than the scene's; ``diagnostics.gel_law.kept`` says why); None: the scene's.
+            ``fit.json`` reports it (``diagnostics.gel_law``).
         arch: elastic terms of the replays: ``cpu`` / ``cuda`` (Taichi) or ``numpy``.
         jacobian: Jacobian provider (``auto``, ``sensitivity``, ``fd``).
         fd_step: finite-difference step in log units.
@@ -122,10 +122,14 @@ class FitOptions:
             nominal model, released at the recorded peel, with its compliant shear layer fitted from the carried card
             where it follows better (:func:`sysid.tack.nominal_tack`), then its ``k_t`` fitted jointly with the
             materials (its tangent column; each channel weighed by its gap at the fit's start);
-            fit.json ``diagnostics.tack`` says what was decided and why. False (the default): no tack, a lift's card
-            stays on the table in every replay (nominal_s109's sheet points at whitened RMS 82 at the engine's
-            values; 7.6 with the layer). Not the default: from starts 30 % off on nominal_s109 the bending
-            lands +12 to +27 % and the friction -21 to -30 % (docs/benchmarks_log.md, session 55, s55-49lift).
+            fit.json ``diagnostics.tack`` says what was decided and why. True: the recording decides (no carried
+            row: no tack and no replay, the replay backend not started by the decision; carried rows: the tack kept
+            by :func:`sysid.tack.tack_margin`); nominal_s109's sheet points at the engine's values whitened RMS 82
+            without it, 8.4 with the layer (docs/benchmarks_log.md, sessions 56-57). False (the default): no tack,
+            a lift's card stays on the table in every replay. Not the default: on nominal_s109 the fit with the tack
+            stops after 0-2 iterations at the released card's stick / slip threshold and reports the friction
+            +19 / +30 % off the engine's value outside its 2-sigma interval from the scene / +30 % start
+            (docs/benchmarks_log.md, session 57, s57-49lift), an interval a user could not trust.
         hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely
@@ -332,16 +336,17 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     scene_law = (model.scene.get("simulation") or {}).get("gel_element")
     stated = None if model.sensor is None else gel_mesh(scene_dict_for(evidence, options.scene))
-    kept = auto_not_applicable(model.sensor is not None, options.tack, scene_law, mesh=simulation.get("gel_resolution"),
+    tack = nominal_tack(model) if options.tack and model.sensor is not None else None
+    layer_on = tack is not None and SHEAR_STIFFNESS_SETTING in (tack.params or {})
+    kept = auto_not_applicable(model.sensor is not None, tack is not None and tack.on, scene_law,
+                               mesh=simulation.get("gel_resolution"),
                                scene_mesh=stated) if options.gel_element == AUTO_LAW else None
     if kept is not None and model.sensor is not None:  # without one, reading the bag said so (no gel to choose for)
         notes = (*notes, f"{bag}: --gel-element auto keeps the scene's gel law ({kept})")
-    tack = nominal_tack(model) if options.tack and model.sensor is not None else None
-    layer_on = tack is not None and SHEAR_STIFFNESS_SETTING in (tack.params or {})
     if SHEAR_STIFFNESS_SETTING in options.params and not layer_on:
         raise ConfigError(f"{bag}: --params names {SHEAR_STIFFNESS_SETTING}, but the tack's compliant shear layer "
-                          f"is not part of this recording's nominal model (give --tack; the tack's decision: "
-                          f"{'not asked' if tack is None else tack.why})")
+                          f"is not part of this recording's nominal model (the tack's decision: "
+                          f"{'not asked: give --tack (a scene with a tactile sensor)' if tack is None else tack.why})")
     jacobian = options.jacobian
     sensor = None
     calibrating = (options.sensor_calibration or calibrated) and model.sensor is not None  # a task scene may have none

@@ -534,7 +534,7 @@ def auto_not_applicable(tactile: bool, tack: bool, scene_law: str | None, laws: 
 
     Args:
         tactile: the recording's scene has a tactile sensor.
-        tack: the fit models the gel's tack (``--tack``).
+        tack: the recording's nominal model has the gel's tack (:func:`sysid.tack.nominal_tack` kept it).
         scene_law: the scene's ``simulation.gel_element``, None where it names none.
         laws: the laws compared.
         mesh: the replays' gel mesh ``[NX, NY, NZ]`` (None: the scene's).
@@ -546,7 +546,7 @@ def auto_not_applicable(tactile: bool, tack: bool, scene_law: str | None, laws: 
     if not tactile:
         return "the scene has no tactile sensor"
     if tack:
-        return "--tack fits the tack's layer with the scene's law"
+        return "the recording's nominal model has the gel's tack, whose layer is fitted with the scene's law"
     if scene_law is not None and scene_law not in laws:
         return f"the scene names {scene_law}, which auto does not compare"
     if mesh is not None and scene_mesh is not None and any(int(a) < int(b) for a, b in zip(mesh, scene_mesh)):

@@ -7,6 +7,7 @@ engines), loaded on its free edge through ``xfrc_applied`` ramped over ``ramp`` 
 damping so that the strip settles; prints the mean tip displacement and the analytic answer:
 
 * ``lateral``: a tip load along z (cantilever, ``P L^3 / (3 EI)``);
+* ``gravity``: the strip's own weight, no tip load (uniformly loaded cantilever, ``q L^4 / (8 EI)``);
 * ``stretch``: tension along x (``F L / (E t W)``);
 * ``inplane``: a pull along y (deep Timoshenko beam, ``F L^3 / (3 E I) + F L / (kappa G A)``);
 * ``twist``: an end torque (twist rate ``T / (G J)``, ``G J = G W t^3 / 3``);
@@ -27,11 +28,12 @@ E, T_CARD, RHO = 3.0e9, 3.0e-4, 700.0  # the reference card: Pa, m, kg/m^3
 LENGTH = 0.1  # m
 
 
-def strip_xml(width: float, nx: int, ny: int, nu: float, damping: float) -> str:
-    """MJCF of the card strip along +x from x = 0, columns 0 and 1 pinned, no gravity, no contact."""
+def strip_xml(width: float, nx: int, ny: int, nu: float, damping: float, gravity: float = 0.0) -> str:
+    """MJCF of the card strip along +x from x = 0, columns 0 and 1 pinned, gravity ``gravity`` m/s^2 along z (0:
+    none), no contact."""
     mass = RHO * LENGTH * width * T_CARD
     return f"""<mujoco><compiler autolimits="true"/>
-<option timestep="0.001" integrator="discrete" solver="Newton" gravity="0 0 0"/>
+<option timestep="0.001" integrator="discrete" solver="Newton" gravity="0 0 {gravity}"/>
 <worldbody>
 <flexcomp name="card" type="grid" dim="2" count="{nx} {ny} 1" spacing="{LENGTH / (nx - 1)} {width / (ny - 1)} 0.01"
  pos="{LENGTH / 2} 0 0" radius="{T_CARD / 2}" mass="{mass}">
@@ -42,7 +44,7 @@ def strip_xml(width: float, nx: int, ny: int, nu: float, damping: float) -> str:
 
 
 def settle(width: float, nx: int, ny: int, nu: float, tip_force, duration: float = 3.0, ramp: float = 1.5,
-           damping: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+           damping: float = 0.02, gravity: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Rest positions ``(n, 3)`` (flexcomp order: index ``ix * ny + iy``) and displacements after the load.
 
     ``tip_force(y)`` gives the force (N, shape ``(m, 3)``) on the m free-edge vertices at lateral positions
@@ -50,7 +52,7 @@ def settle(width: float, nx: int, ny: int, nu: float, tip_force, duration: float
     """
     import mujoco
 
-    model = mujoco.MjModel.from_xml_string(strip_xml(width, nx, ny, nu, damping))
+    model = mujoco.MjModel.from_xml_string(strip_xml(width, nx, ny, nu, damping, gravity))
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     adr, num = model.flex_vertadr[0], model.flex_vertnum[0]
@@ -72,7 +74,7 @@ def edge_weights(y: np.ndarray) -> np.ndarray:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("cases", nargs="+", choices=("lateral", "stretch", "inplane", "twist", "buckle"))
+    parser.add_argument("cases", nargs="+", choices=("lateral", "gravity", "stretch", "inplane", "twist", "buckle"))
     args = parser.parse_args(argv)
     nu, width, nx, ny = 0.3, 0.06, 21, 13
     held = LENGTH * (1.0 - 1.0 / (nx - 1))  # in plane: held up to column 1
@@ -84,6 +86,11 @@ def main(argv=None) -> None:
             _, u = settle(width, nx, ny, nu, lambda y: np.outer(edge_weights(y), (0, 0, p)))
             beam = p * bent**3 / (3.0 * E * T_CARD**3 / 12.0 * width)
             print(f"lateral {p} N: tip w {u[-ny:, 2].mean():.4e} m, beam E t^3 W / 12: {beam:.4e} m")
+        elif case == "gravity":
+            _, u = settle(width, nx, ny, nu, lambda y: np.zeros((y.size, 3)), gravity=-9.81)
+            beam = RHO * T_CARD * 9.81 * width * bent**4 / (8.0 * E * T_CARD**3 / 12.0 * width)
+            print(f"gravity: tip sag {-u[-ny:, 2].mean():.4e} m, beam q L^4 / (8 E t^3 W / 12): {beam:.4e} m "
+                  f"(ratio {-u[-ny:, 2].mean() / beam:.3f})")
         elif case == "stretch":
             f = 10.0
             _, u = settle(width, nx, ny, nu, lambda y: np.outer(edge_weights(y), (f, 0, 0)), 0.6, 0.3)

@@ -244,7 +244,7 @@ def test_auto_is_thinshell_sysids_default_and_keeps_the_scenes_law_where_no_comp
     for law in GEL_LAWS:
         assert auto_not_applicable(True, False, law) is None
     assert "tactile" in auto_not_applicable(False, False, None)
-    assert "--tack" in auto_not_applicable(True, True, None)
+    assert "tack" in auto_not_applicable(True, True, None)
     assert "modified_stvk" in auto_not_applicable(True, False, "modified_stvk")
     # the comparison on the scene's gel mesh or a finer one, not on a coarser (the quick demo's 3,3,2)
     from sysid.gel_law import gel_mesh
