@@ -35,7 +35,9 @@ trial far from the root leaves its answer to the next: where the step's energy h
 whose sides are taken at ``x^n``, a pad lifting off a pressed card) the root's answer then depends on the
 secant's path. latency_s103's replay through its drive at the stick speed 3.3 mm/s kept the released card on the
 lifting pad that way (sheet points whitened RMS 35.5, 11.1 from ``x^n``; docs/benchmarks_log.md, session 57,
-s57-49follow).
+s57-49follow). Each load read then carries the step's Newton tolerance: a force tolerance is met where the steps
+are solved tightly enough for it (the replays: 1e-7 m/s, 1 mN; at the solver's default 1e-4 m/s a pad pressed on
+a rigid table, ~6e5 N/m, ends 12 evaluations 5 mN off a 0.1 mN tolerance).
 
 An infinitely stiff spring (``k_s = inf``) is the kinematic drive: the effector at the anchor, one
 step, ``b = 0`` (the step taken exactly as without the drive).
