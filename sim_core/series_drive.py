@@ -28,16 +28,9 @@ The root is therefore bracketed after the first evaluation, and the safeguarded 
 it; Brent 1973, "Algorithms for Minimization without Derivatives", ch. 4) converges from any start.
 For a linear contact of stiffness ``k_c`` the load is the series spring's ``F = k_s k_c / (k_s + k_c) d``
 (``d`` the anchor's depth past first contact), and the first secant step, taken with the contact's
-slope (the previous step's estimate), lands on the root when that slope is exact. Every evaluation starts
-its Newton iterations from the same first iterate (``Control.position_guess``, else the solver's ``x^n``), so
-that ``F(b)`` is a function of ``b``, as the bracket assumes. Started from the previous evaluation's solution, a
-trial far from the root leaves its answer to the next: where the step's energy has two minima (a penalty contact
-whose sides are taken at ``x^n``, a pad lifting off a pressed card) the root's answer then depends on the
-secant's path. latency_s103's replay through its drive at the stick speed 3.3 mm/s kept the released card on the
-lifting pad that way (sheet points whitened RMS 35.5, 11.1 from ``x^n``; docs/benchmarks_log.md, session 57,
-s57-49follow). Each load read then carries the step's Newton tolerance: a force tolerance is met where the steps
-are solved tightly enough for it (the replays: 1e-7 m/s, 1 mN; at the solver's default 1e-4 m/s a pad pressed on
-a rigid table, ~6e5 N/m, ends 12 evaluations 5 mN off a 0.1 mN tolerance).
+slope (the previous step's estimate), lands on the root when that slope is exact. Every evaluation after
+the first starts its Newton iterations from the previous evaluation's solution (``Control.position_guess``),
+which differs by the small change of compression.
 
 An infinitely stiff spring (``k_s = inf``) is the kinematic drive: the effector at the anchor, one
 step, ``b = 0`` (the step taken exactly as without the drive).
@@ -169,14 +162,16 @@ class SeriesSpringDrive:
             previous = np.asarray(state0.effector_pose[self.effector], dtype=float)[:3]
             k, pull = k + self.damping / sim.dt, self.damping / sim.dt * float(np.dot(anchor[:3] - previous, axis))
 
+        guess = [control.position_guess]
 
         def h(b: float) -> tuple[float, float]:
             pose = anchor.copy()
             pose[:3] -= b * axis
             trial = dataclasses.replace(control, effector_pose_target={**control.effector_pose_target,
-                                                                       self.effector: pose})
+                                                                       self.effector: pose}, position_guess=guess[0])
             sim.state, sim.step_totals = state0, dataclasses.replace(totals0)
-            sim.step(trial)  # from the step's own first iterate (module docstring)
+            sim.step(trial)
+            guess[0] = sim.state.x  # the next evaluation's Newton start: this one's solution
             f = self.load(sim.state, axis)
             return f - k * b + pull, f
 

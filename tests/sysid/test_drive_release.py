@@ -1,19 +1,15 @@
 """A replay through the drive releases the card where the recording does: latency_s103's pad lifts off the
 pressed card at about 24 mm/s, and the card stays on the table (the recording's sheet points after the lift sit
-within their noise of the table). The step's energy has two minima there (the card released, or held on the pad
-by penalty contacts whose sides are taken at ``x^n``), and a drive step's answer must be the one reached from the
-step's start whatever its first guesses: with every vertex carried on at its velocity in the first Newton iterate,
-the replay at the scene's values kept the card on the lifting pad (sheet points whitened RMS 61 after the lift;
-:func:`sysid.replay_drive.inertial_start` carries only the bodies clear of contact), and with each drive evaluation
-started from the last one's solution, the replay at the calibration's secant probe (stick speed 3.3 mm/s) did
-(35.5 on the whole replay; :class:`sim_core.series_drive.SeriesSpringDrive` starts every evaluation from the
-step's first iterate). docs/benchmarks_log.md, session 57, s57-49follow.
+within their noise of the table). A drive step's first Newton iterate that carries a vertex near a contact on at
+its velocity starts Newton past the penalty contact's side and lands in another minimum of the step's energy:
+every vertex carried on, the replay at the scene's values kept the card on the lifting pad (sheet points
+whitened RMS 61 after the lift, the whole replay's markers 9.67 -> 11.53; docs/benchmarks_log.md, session 57,
+s57-49follow). :func:`sysid.replay_drive.inertial_start` carries only the bodies clear of contact.
 """
 
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from sysid.calibration import whitened_rms
 from sysid.drive_calibration import fit_drive
@@ -26,17 +22,16 @@ LIFTED_S = 3.35
 above the press at 3.24 s and rising)."""
 
 
-@pytest.mark.parametrize("stick_speed", [None, 1.0 / 300.0])
-def test_the_drive_replay_leaves_the_released_card_on_the_table(stick_speed):
-    """latency_s103 replayed through its fitted drive (3,000 N/m, 34 N s/m) at the scene's values and at the stick
-    speed of the calibration's secant probe (a third of the scene's 10 mm/s): after the lift the replayed card
-    points are within the noise of the recorded ones (whitened RMS < 1.5; the card carried up on the pad gave
-    60 and 35-61), and the whole replay's markers within 10 noise units (9.67 / 8.23 from the steps' starts)."""
+def test_the_drive_replay_leaves_the_released_card_on_the_table():
+    """latency_s103 replayed at the scene's values through its fitted drive (3,000 N/m, 34 N s/m): after the lift
+    the replayed card points are within the noise of the recorded ones (whitened RMS < 1.5; the card carried up
+    on the pad gave 61), and the whole replay's markers follow as well as a replay started at ``x^n`` every
+    step (9.67 noise units at the scene's values)."""
     model = ObservationModel(load_evidence(reference_bag("latency_s103")), dt=0.01, arch="cpu")
     fit = fit_drive(model)
     assert fit.compliant
     model.set_drive_stiffness(fit.replay_stiffness, fit.replay_damping)
-    raw = model.predict_raw(model.simulate({} if stick_speed is None else {"contact.eps_v": stick_speed}))
+    raw = model.predict_raw(model.simulate({}))
     ev = model.evidence
     y = model.data("sheet_points")
     t = (np.asarray(ev.t_ns["sheet_points"], dtype=np.int64)[:len(y)] - ev.start_ns) * 1e-9
