@@ -56,8 +56,7 @@ def first_compression(load: float, slope: float, reach: float, stiffness: float,
     contact. One replay of nominal_s101 through its drive makes 550 step evaluations and 2,076 Newton iterations
     from it, 661 and 2,441 from the last compression plus the anchor's advance times ``s / (s + K)`` (the damper's
     lag left out: two evaluations a step on the approach and the retreat), the two within the drive's force
-    tolerance of each other at every step (docs/benchmarks_log.md, session 56, s56-49pre; each evaluation then
-    started from the last one's solution, now from the step's first iterate: session 57, s57-49follow).
+    tolerance of each other at every step (docs/benchmarks_log.md, session 56, s56-49pre).
 
     Args:
         load: the last step's load ``F_0`` on the driven body, N (0 before contact).
