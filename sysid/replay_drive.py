@@ -24,6 +24,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from sim_core.adjoint import Trajectory, check_parameters
+from sim_core.carried_start import clear_of_contact
 from sim_core.control import Control
 from sim_core.errors import ConfigError
 from sim_core.sensitivity import DriveStep, TangentPropagation
@@ -65,6 +66,46 @@ def first_compression(load: float, slope: float, reach: float, stiffness: float,
         rate: the damper's ``c / dt``, N/m.
     """
     return (load + (slope + rate) * reach) / (stiffness + rate + slope)
+
+
+def inertial_start(sim, effector: str, reach: np.ndarray) -> np.ndarray | None:
+    """A drive step's first Newton iterate: the vertices of every body clear of contact over the step carried on
+    at their velocity (``x^n + dt v^n``, the inertia's own prediction), every other vertex at ``x^n``; None where
+    no body is clear (the solver's own start).
+
+    A body near a contact keeps ``x^n``: its penalty contacts take their sides at ``x^n``
+    (:mod:`sim_core.contact_set`), and a first iterate carried past them starts Newton in another minimum of
+    the step's energy, the converged answer of a different path (as :mod:`sim_core.carried_start` carries only
+    a body clear of contact). Every vertex carried on, latency_s103's replay at the scene's values (VM, session
+    57) kept the released card on the lifting pad (sheet points whitened RMS 61 after the lift, against 1.0
+    from ``x^n`` and in the recording; the whole replay 24.9 against 12.9): each step within the Newton
+    tolerance, a different answer. Clear of contact is
+    :func:`sim_core.carried_start.clear_of_contact` with the body's own move ``dt max|v^n|`` and the driven
+    vertices' move bounded by the anchor's reach past the tool.
+
+    Args:
+        sim: the :class:`~sim_core.simulation.Simulation` at the step's start.
+        effector: the driven effector's name.
+        reach: ``(3,)`` the step's target position of the effector minus its position at the step's start, m.
+
+    Returns:
+        ``(n, 3)`` positions, m, or None.
+    """
+    model, state, dt = sim.model, sim.state, sim.dt
+    x_n, v_n = np.asarray(state.x, dtype=float), np.asarray(state.v, dtype=float)
+    fixed = np.zeros(len(x_n), dtype=bool)
+    driven = np.asarray(model.effectors[effector].vertices, dtype=np.int64)
+    fixed[driven] = True
+    x_target = x_n.copy()
+    x_target[driven] += np.asarray(reach, dtype=float)
+    guess, carried = x_n.copy(), False
+    for body in model.bodies.values():
+        s = slice(body.vertex_start, body.vertex_stop)
+        move = dt * float(np.sqrt(np.max(np.sum(v_n[s] ** 2, axis=1)))) if body.vertex_stop > body.vertex_start else 0.0
+        if move > 0.0 and clear_of_contact(model, body.name, x_n, v_n, dt, move, x_target, fixed):
+            guess[s] += dt * v_n[s]
+            carried = True
+    return guess if carried else None
 
 
 class ReplayDrive:
@@ -125,13 +166,12 @@ class ReplayDrive:
         axis = self.normal(pose)
         if self.commands is not None:
             pose[:3] += float(np.dot(self.commands[k, :3] - self.controls[k, :3], axis)) * axis
-        # the step's first Newton iterate, where the replay gives none: every vertex carried on at its velocity
-        # (x^n + dt v^n, the inertia's own prediction), not left at x^n (nominal_s101's replay through its arm: the
-        # steps' first evaluations 1,261 Newton iterations from there, 1,616 from x^n; docs/benchmarks_log.md)
-        guess = control.position_guess if control.position_guess is not None else sim.state.x + sim.dt * sim.state.v
+        tool = np.asarray(sim.state.effector_pose[name], dtype=float)[:3]
+        guess = control.position_guess
+        if guess is None:
+            guess = inertial_start(sim, self.spring.effector, pose[:3] - tool)
         anchored = Control({**control.effector_pose_target, name: pose}, dict(control.gripper_target), guess)
         load, slope = self._carried
-        tool = np.asarray(sim.state.effector_pose[name], dtype=float)[:3]
         start = first_compression(load, slope, float(np.dot(pose[:3] - tool, axis)), self.spring.stiffness,
                                   self.spring.damping / sim.dt)
         result = self.spring.step(sim, anchored, axis, start=start, contact_slope=slope)

@@ -6,7 +6,10 @@ with 4.4 N and dragged 2.8 mm over the card, 3.5 N of friction): once with ``arc
 :class:`~sim_core.energies.green_strain.reference.GreenStrainSolid` and NumPy contact) and once on ``taichi-cpu``,
 where the gel is the fused kernel (:class:`~sim_core.energies.green_strain.fused_kernel.FusedGreenStrainSolid`,
 counted). Every observed channel agrees to well within the solver's tolerance (``tol_velocity`` 1e-4 m/s: 1 um a
-10 ms step; measured: 1e-16 m in the markers, 5e-13 N in the wrench).
+10 ms step): measured 2e-10 m in the markers, 3e-6 px in the pixels (the markers' difference through the camera, ~1.2e4
+px/m) and 6.7e-6 N in the wrench from the contact's onset on, where the drive's first Newton iterate is the
+contact's ``x^n`` (:func:`sysid.replay_drive.inertial_start`); 1e-16 m and 5e-13 N with every vertex carried on at
+its velocity, which started Newton nearer the answer.
 """
 
 from __future__ import annotations
@@ -45,5 +48,5 @@ def test_a_green_strain_press_slide_replays_alike_on_both_backends(monkeypatch):
     assert np.max(np.abs(sheared)) > 3e-4  # m: the gel's markers carried sideways (measured 0.6 mm)
     for channel in ("markers_xyz", "sheet_points"):
         assert np.max(np.abs(taichi[channel] - reference[channel])) < 1e-8, channel  # m
-    assert np.max(np.abs(taichi["wrench"] - reference["wrench"])) < 1e-6 * np.max(np.abs(reference["wrench"]))
-    assert np.max(np.abs(taichi["markers_uv"] - reference["markers_uv"])) < 1e-6  # px
+    assert np.max(np.abs(taichi["wrench"] - reference["wrench"])) < 1e-5 * np.max(np.abs(reference["wrench"]))
+    assert np.max(np.abs(taichi["markers_uv"] - reference["markers_uv"])) < 1e-4  # px: the markers' 1e-8 m
