@@ -28,9 +28,16 @@ The root is therefore bracketed after the first evaluation, and the safeguarded 
 it; Brent 1973, "Algorithms for Minimization without Derivatives", ch. 4) converges from any start.
 For a linear contact of stiffness ``k_c`` the load is the series spring's ``F = k_s k_c / (k_s + k_c) d``
 (``d`` the anchor's depth past first contact), and the first secant step, taken with the contact's
-slope (the previous step's estimate), lands on the root when that slope is exact. Every evaluation after
-the first starts its Newton iterations from the previous evaluation's solution (``Control.position_guess``),
-which differs by the small change of compression.
+slope (the previous step's estimate), lands on the root when that slope is exact.
+
+Each evaluation's Newton start is a function of its own compression (:class:`CompressionLoad`): the first
+two (``b_0`` and the first secant step ``b_1``, both fixed by the step's inputs) start from the step's first
+iterate and from ``x(b_0)``, every later one from the straight line through the two solutions,
+``x(b_0) + (b - b_0) (x(b_1) - x(b_0)) / (b_1 - b_0)`` (``Control.position_guess``). So ``F(b)`` does not
+depend on the order in which the secant visits compressions. Chained from the previous evaluation's solution
+instead, at a fold of the step's energy (a buckled card at the pad's lift-off) starts 10 um apart end in
+different minima, and latency_s103's calibration read its stick-speed probe with the card held on the lifting
+pad (docs/benchmarks_log.md, session 57, s57-49follow and s57-49release).
 
 An infinitely stiff spring (``k_s = inf``) is the kinematic drive: the effector at the anchor, one
 step, ``b = 0`` (the step taken exactly as without the drive).
@@ -155,24 +162,14 @@ class SeriesSpringDrive:
             sim.step(control)
             f = self.load(sim.state, axis)
             return SeriesDriveStep(0.0, f, 0.0, 1, True, 0.0)
-        state0, totals0 = sim.state, dataclasses.replace(sim.step_totals)
-        anchor = np.asarray(control.effector_pose_target[self.effector], dtype=float)
-        k, pull = self.stiffness, 0.0
+        load = CompressionLoad(self, sim, control, axis)
+        anchor, state0, k, pull = load.anchor, load.state0, self.stiffness, 0.0
         if self.damping > 0.0:  # the damper as a spring c / dt to the tool's last position (module docstring)
             previous = np.asarray(state0.effector_pose[self.effector], dtype=float)[:3]
             k, pull = k + self.damping / sim.dt, self.damping / sim.dt * float(np.dot(anchor[:3] - previous, axis))
 
-        guess = [control.position_guess]
-
         def h(b: float) -> tuple[float, float]:
-            pose = anchor.copy()
-            pose[:3] -= b * axis
-            trial = dataclasses.replace(control, effector_pose_target={**control.effector_pose_target,
-                                                                       self.effector: pose}, position_guess=guess[0])
-            sim.state, sim.step_totals = state0, dataclasses.replace(totals0)
-            sim.step(trial)
-            guess[0] = sim.state.x  # the next evaluation's Newton start: this one's solution
-            f = self.load(sim.state, axis)
+            f = load(b)
             return f - k * b + pull, f
 
         b0 = float(start)
@@ -200,3 +197,53 @@ class SeriesSpringDrive:
             secant = b - hb * (b - b_prev) / (hb - h_prev) if hb != h_prev else math.nan
             b_prev, h_prev = b, hb
             b = secant if lo < secant < hi else 0.5 * (lo + hi)
+
+
+class CompressionLoad:
+    """The load ``F(b)`` of one drive step as a function of the spring's compression (module docstring).
+
+    Each call takes the step from the same start state with the tool at ``p(b) = a - b n``; its Newton
+    iterations start from a first iterate that depends on ``b`` alone: the first call's from the step's own
+    first iterate (``control.position_guess``; None: the solver's), the second call's from the first call's
+    solution, every later call's from the straight line through the first two calls' solutions at ``b``.
+
+    Args:
+        drive: the :class:`SeriesSpringDrive`.
+        sim: the :class:`~sim_core.simulation.Simulation` at the step's start; each call replaces its state
+            (and ``step_totals``) by that call's step.
+        control: the step's control; ``control.effector_pose_target[drive.effector]`` is the anchor pose.
+        axis: unit axis ``n`` (3,), world, pointing into the contact.
+
+    Attributes:
+        base: ``[(b, x(b))]``: the first two calls' compressions (m) and solutions ``(n, 3)`` (m).
+    """
+
+    def __init__(self, drive: SeriesSpringDrive, sim, control: Control, axis: np.ndarray) -> None:
+        self.drive, self.sim, self.control, self.axis = drive, sim, control, np.asarray(axis, dtype=float)
+        self.state0, self.totals0 = sim.state, dataclasses.replace(sim.step_totals)
+        self.anchor = np.asarray(control.effector_pose_target[drive.effector], dtype=float)
+        self.base: list[tuple[float, np.ndarray]] = []
+
+    def first_iterate(self, b: float) -> np.ndarray | None:
+        """The Newton start of the evaluation at compression ``b`` (m): positions ``(n, 3)``, m, or None."""
+        if not self.base:
+            return self.control.position_guess
+        (b0, x0), (b1, x1) = self.base[0], self.base[-1]
+        if len(self.base) == 1 or b1 == b0:
+            return x0
+        return x0 + ((b - b0) / (b1 - b0)) * (x1 - x0)
+
+    def __call__(self, b: float) -> float:
+        """The load ``F`` (N) along ``-n`` on the load vertices after the step with compression ``b`` (m)."""
+        b = float(b)
+        pose = self.anchor.copy()
+        pose[:3] -= b * self.axis
+        control = self.control
+        trial = dataclasses.replace(control, effector_pose_target={**control.effector_pose_target,
+                                                                   self.drive.effector: pose},
+                                    position_guess=self.first_iterate(b))
+        self.sim.state, self.sim.step_totals = self.state0, dataclasses.replace(self.totals0)
+        self.sim.step(trial)
+        if len(self.base) < 2:
+            self.base.append((b, np.array(self.sim.state.x, dtype=float)))
+        return self.drive.load(self.sim.state, self.axis)
