@@ -30,14 +30,16 @@ For a linear contact of stiffness ``k_c`` the load is the series spring's ``F = 
 (``d`` the anchor's depth past first contact), and the first secant step, taken with the contact's
 slope (the previous step's estimate), lands on the root when that slope is exact.
 
-Each evaluation's Newton start is a function of its own compression (:class:`CompressionLoad`): the first
-two (``b_0`` and the first secant step ``b_1``, both fixed by the step's inputs) start from the step's first
-iterate and from ``x(b_0)``, every later one from the straight line through the two solutions,
-``x(b_0) + (b - b_0) (x(b_1) - x(b_0)) / (b_1 - b_0)`` (``Control.position_guess``). So ``F(b)`` does not
-depend on the order in which the secant visits compressions. Chained from the previous evaluation's solution
-instead, at a fold of the step's energy (a buckled card at the pad's lift-off) starts 10 um apart end in
-different minima, and latency_s103's calibration read its stick-speed probe with the card held on the lifting
-pad (docs/benchmarks_log.md, session 57, s57-49follow and s57-49release).
+The evaluations' Newton starts (:class:`CompressionLoad`, ``Control.position_guess``): the first from the
+step's first iterate, the second from the first one's solution; after that, ``starts="chained"`` (default)
+starts each from the previous evaluation's solution, ``starts="line"`` from the straight line through the
+first two solutions, ``x(b_0) + (b - b_0) (x(b_1) - x(b_0)) / (b_1 - b_0)`` (``b_0`` and the first secant
+step ``b_1`` are fixed by the step's inputs), a function of ``b`` alone: ``F(b)`` then does not depend on the
+order in which the secant visits compressions. "line" needs a Newton tolerance that resolves the force
+tolerance through the contact's stiffness: at the solver's default 1e-4 m/s (1 um a 10 ms step; a gel pad's
+contact ~6e5 N/m) a pad's first touch gave loads 0.1 N off a monotone ``F(b)`` and the step ended on its
+evaluation limit, where the chained starts (each a neighbour's solution) converged; at a replay's 1e-7 m/s
+both converge (docs/benchmarks_log.md, session 57, s57-49release).
 
 An infinitely stiff spring (``k_s = inf``) is the kinematic drive: the effector at the anchor, one
 step, ``b = 0`` (the step taken exactly as without the drive).
@@ -57,6 +59,9 @@ from sim_core.errors import ConfigError
 SERIES_MAX_EVALUATIONS = 12
 """Default largest number of step evaluations of one drive step: the bracket's bisections alone
 shrink it by 2^-10 within that count."""
+
+SERIES_STARTS = ("chained", "line")
+"""The evaluations' Newton starts of a drive step (module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -93,15 +98,17 @@ class SeriesSpringDrive:
         offset_tolerance: bracket width (m) at which a step is accepted (> 0).
         max_evaluations: step evaluations allowed per step (>= 2).
         damping: the damper ``c`` on the tool's velocity along the axis, N s/m (>= 0; finite).
+        starts: the evaluations' Newton starts, ``"chained"`` or ``"line"`` (module docstring).
 
     Raises:
         ConfigError: a stiffness that is not positive, tolerances that are not positive, fewer than
-            two evaluations, no load vertices, or a damping that is negative or not finite.
+            two evaluations, no load vertices, a damping that is negative or not finite, or unknown starts.
     """
 
     def __init__(self, effector: str, stiffness: float, load_vertices: np.ndarray,
                  force_tolerance: float = 1.0e-3, offset_tolerance: float = 1.0e-9,
-                 max_evaluations: int = SERIES_MAX_EVALUATIONS, damping: float = 0.0) -> None:
+                 max_evaluations: int = SERIES_MAX_EVALUATIONS, damping: float = 0.0,
+                 starts: str = "chained") -> None:
         if not stiffness > 0.0:
             raise ConfigError(f"series drive of {effector!r}: stiffness must be > 0 N/m (inf: kinematic), "
                               f"got {stiffness!r}")
@@ -112,6 +119,8 @@ class SeriesSpringDrive:
                               f"{force_tolerance!r} N, offset {offset_tolerance!r} m")
         if int(max_evaluations) < 2:
             raise ConfigError(f"series drive of {effector!r}: max_evaluations must be >= 2, got {max_evaluations!r}")
+        if starts not in SERIES_STARTS:
+            raise ConfigError(f"series drive of {effector!r}: starts must be one of {SERIES_STARTS}, got {starts!r}")
         load_vertices = np.asarray(load_vertices, dtype=np.int64).reshape(-1)
         if load_vertices.size == 0:
             raise ConfigError(f"series drive of {effector!r}: no load vertices")
@@ -122,6 +131,7 @@ class SeriesSpringDrive:
         self.offset_tolerance = float(offset_tolerance)
         self.max_evaluations = int(max_evaluations)
         self.damping = float(damping)
+        self.starts = starts
 
     @property
     def kinematic(self) -> bool:
@@ -203,9 +213,10 @@ class CompressionLoad:
     """The load ``F(b)`` of one drive step as a function of the spring's compression (module docstring).
 
     Each call takes the step from the same start state with the tool at ``p(b) = a - b n``; its Newton
-    iterations start from a first iterate that depends on ``b`` alone: the first call's from the step's own
-    first iterate (``control.position_guess``; None: the solver's), the second call's from the first call's
-    solution, every later call's from the straight line through the first two calls' solutions at ``b``.
+    iterations start from the step's own first iterate (``control.position_guess``; None: the solver's) for
+    the first call, from the first call's solution for the second, and after that as ``drive.starts`` says:
+    the previous call's solution (``"chained"``) or the straight line through the first two calls' solutions
+    at ``b`` (``"line"``: a function of ``b`` alone).
 
     Args:
         drive: the :class:`SeriesSpringDrive`.
@@ -215,7 +226,8 @@ class CompressionLoad:
         axis: unit axis ``n`` (3,), world, pointing into the contact.
 
     Attributes:
-        base: ``[(b, x(b))]``: the first two calls' compressions (m) and solutions ``(n, 3)`` (m).
+        base: ``[(b, x(b))]``: the compressions (m) and solutions ``(n, 3)`` (m) the starts are made of (the
+            first two calls'; "chained": the last call's).
     """
 
     def __init__(self, drive: SeriesSpringDrive, sim, control: Control, axis: np.ndarray) -> None:
@@ -244,6 +256,9 @@ class CompressionLoad:
                                     position_guess=self.first_iterate(b))
         self.sim.state, self.sim.step_totals = self.state0, dataclasses.replace(self.totals0)
         self.sim.step(trial)
-        if len(self.base) < 2:
-            self.base.append((b, np.array(self.sim.state.x, dtype=float)))
+        solution = (b, np.array(self.sim.state.x, dtype=float))
+        if self.drive.starts == "chained":
+            self.base = [solution]
+        elif len(self.base) < 2:
+            self.base.append(solution)
         return self.drive.load(self.sim.state, self.axis)

@@ -44,6 +44,16 @@ it. 0.005 (1 mN there, :class:`~sim_core.series_drive.SeriesSpringDrive`'s own d
 cost; 0.5 (until session 55) moved it 0.7 % (docs/benchmarks_log.md, session 55, s55-49rest)."""
 
 
+DRIVE_STARTS = "line"
+"""The replay's drive evaluations start Newton from a function of their own compression
+(:class:`sim_core.series_drive.CompressionLoad`), so a step's load ``F(b)`` does not depend on the order of the
+secant's evaluations; the replay's 1e-7 m/s (:data:`sysid.observation.REPLAY_TOL_VELOCITY`) resolves the drive's
+force tolerance from such starts. Measured against the chained starts (VM, session 57, s57-49release): the
+calibration's whitened RMS the same to 4 digits on latency_s103 and nominal_s101, its CPU 55.7 -> 51.9 s and
+52.1 -> 43.9 s; latency_s103's stick-speed probe still keeps the card on the lifting pad (the line continues the
+held branch of the lift-off's fold)."""
+
+
 def first_compression(load: float, slope: float, reach: float, stiffness: float, rate: float) -> float:
     """The first compression a drive step tries (m): the root of the step's spring balance with the load linear
     in the tool's advance.
@@ -144,7 +154,7 @@ class ReplayDrive:
         gel = sim.model.bodies[sim.model.sensors[model.sensor].gel_body].vertices
         tolerance = DRIVE_FORCE_TOLERANCE * float(model.sigma["wrench"][2]) if "wrench" in model.sigma else 1.0e-3
         spring = SeriesSpringDrive(model.effector, model.drive_stiffness, gel, force_tolerance=tolerance,
-                                   damping=model.drive_damping)
+                                   damping=model.drive_damping, starts=DRIVE_STARTS)
         return cls(spring, model.controls, model.commands, model.sensor_normal)
 
     def start(self) -> None:

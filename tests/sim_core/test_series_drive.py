@@ -131,12 +131,13 @@ def test_an_invalid_damper_is_refused(damping):
 
 
 def test_the_load_at_a_compression_does_not_depend_on_the_order_of_the_evaluations():
-    """``F(b)`` of one step (:class:`~sim_core.series_drive.CompressionLoad`) is the same whichever compressions
-    were evaluated before it: each evaluation's Newton start is a function of its own ``b``. At the solver's
-    default 1e-4 m/s, started from the previous evaluation's solution instead, the load at ``b_0 + 5 um`` moves by
-    3.2 mN with the order (measured, session 57), 32 times this drive's force tolerance."""
+    """``F(b)`` of one step (:class:`~sim_core.series_drive.CompressionLoad`, ``starts="line"``) is the same
+    whichever compressions were evaluated before it: each evaluation's Newton start is a function of its own
+    ``b``. At the solver's default 1e-4 m/s, with ``starts="chained"`` (each from the previous evaluation's
+    solution) the load at ``b_0 + 5 um`` moves by 3.2 mN with the order (measured, session 57), 32 times this
+    drive's force tolerance."""
     sim = _simulation()
-    drive = SeriesSpringDrive("ee", 2000.0, _gel_vertices(sim), force_tolerance=1.0e-4)
+    drive = SeriesSpringDrive("ee", 2000.0, _gel_vertices(sim), force_tolerance=1.0e-4, starts="line")
     path = _anchor_path(0.0004)
     b, slope = 0.0, 0.0
     for z in path[:14]:
@@ -155,3 +156,8 @@ def test_the_load_at_a_compression_does_not_depend_on_the_order_of_the_evaluatio
     assert forward[later[0]] > forward[later[1]] + 0.1  # the load falls as the tool backs off
     for c in first_two + later:
         assert forward[c] == pytest.approx(backward[c], abs=1.0e-9)
+
+
+def test_unknown_evaluation_starts_are_refused():
+    with pytest.raises(ConfigError, match="starts must be one of"):
+        SeriesSpringDrive("ee", 2000.0, np.arange(3), starts="previous")
