@@ -48,10 +48,10 @@ DRIVE_STARTS = "line"
 """The replay's drive evaluations start Newton from a function of their own compression
 (:class:`sim_core.series_drive.CompressionLoad`), so a step's load ``F(b)`` does not depend on the order of the
 secant's evaluations; the replay's 1e-7 m/s (:data:`sysid.observation.REPLAY_TOL_VELOCITY`) resolves the drive's
-force tolerance from such starts. Measured against the chained starts (VM, session 57, s57-49release): the
-calibration's whitened RMS the same to 4 digits on latency_s103 and nominal_s101, its CPU 55.7 -> 51.9 s and
-52.1 -> 43.9 s; latency_s103's stick-speed probe still keeps the card on the lifting pad (the line continues the
-held branch of the lift-off's fold)."""
+force tolerance from such starts. Against the chained starts (docs/benchmarks_log.md, session 57, s57-49release):
+the calibration's whitened RMS the same to 4 digits on latency_s103 and nominal_s101, one replay of nominal_s101
+550 evaluations and 16.3 CPU s with either; latency_s103's stick-speed probe still keeps the card on the lifting
+pad (the line continues the held branch of the lift-off's fold)."""
 
 
 def first_compression(load: float, slope: float, reach: float, stiffness: float, rate: float) -> float:
