@@ -47,7 +47,7 @@ nominal_s109 at the engine's values, sheet points' whitened RMS over the recordi
 32.1, the compliant layer (k_t 2.64 N/m a pair, fitted) 7.59, markers 2.56 -> 1.44 (docs/benchmarks_log.md,
 session 53). The rigid shear bonds of the coupled law (``adhesion.shear``) read 41: the fold needs the compliance.
 
-History of the fit with the tack (opt-in ``--tack`` until session 57). Session 53: from +-30 % starts the materials did not come back (s109
+What the fit with the tack gives on nominal_s109, measured (docs/benchmarks_log.md, sessions 53-57). Session 53: from +-30 % starts the materials did not come back (s109
 -30 %: modulus -64 %, friction -50 %) and from the scene the friction landed at -27 %, with the force gain on its bound
 (the reference records the bonds' force with the card's sign). Session 54 (docs/benchmarks_log.md, s54-49lift): with
 that phase's wrench rows left out (:mod:`sysid.wrench_check`) the force gain is 1.01-1.14, inside its prior; with
