@@ -8,12 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim_core.elastic import ElasticTerms
 from sim_core.energies.green_strain import GreenStrainSolid, linear_lame_parameters
 from sim_core.energies.neohookean.reference import StableNeoHookean
-from sim_core.errors import ConfigError
 from sim_core.mesh.tet import tet_box
-from tests.sim_core.energies.solid_cases import E_GEL, NU_GEL, deformed, gel_block
+from tests.sim_core.energies.solid_cases import E_GEL, NU_GEL, assert_chosen_by_name, deformed, gel_block
 from tests.support.fd import dense_hessian, relative_error
 from tests.support.linear_fe import linear_stiffness
 
@@ -54,20 +52,8 @@ def test_simple_shear_energy_and_the_normal_stress_that_thins_the_layer() -> Non
 def test_the_gel_element_is_chosen_by_name() -> None:
     """``model.meta["solid_element"] = "green_strain"`` gives the solid this law (its energy at a sheared state is
     Saint Venant-Kirchhoff's, not Stable Neo-Hookean's); an unknown name is an error naming it."""
-    from sim_core.builder import ModelBuilder
-
-    mesh = gel_block()
-    builder = ModelBuilder()
-    builder.add_solid("gel", mesh, {"youngs_modulus": E_GEL, "poisson_ratio": NU_GEL, "density": 1000.0})
-    model = builder.finalize(meta={"solid_element": "green_strain"})
-    solid = ElasticTerms(model).solids["gel"]
-    x = deformed(mesh.x, 5)
-    assert isinstance(solid, GreenStrainSolid)
-    assert solid.energy(x) == pytest.approx(GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL).energy(x), rel=1e-12)
-    model.meta["solid_element"] = "green_strian"
-    with pytest.raises(ConfigError, match="green_strian"):
-        ElasticTerms(model)
-
+    assert_chosen_by_name("green_strain", lambda mesh: GreenStrainSolid(mesh.tets, mesh.x, E_GEL, NU_GEL),
+                          "green_strian")
 
 def test_the_gel_candidates_take_the_green_strain_gels_per_tet_branch() -> None:
     """The Maxwell branch (gel viscoelasticity) and the Kelvin-Voigt dashpot (gel damping) of a Green-strain gel are

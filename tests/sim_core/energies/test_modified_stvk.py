@@ -10,13 +10,10 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from sim_core.builder import ModelBuilder
-from sim_core.elastic import ElasticTerms
 from sim_core.energies.green_strain import GreenStrainSolid, linear_lame_parameters
 from sim_core.energies.modified_stvk import ModifiedStVKSolid
-from sim_core.errors import ConfigError
 from sim_core.mesh.tet import tet_box
-from tests.sim_core.energies.solid_cases import E_GEL, NU_GEL, deformed, gel_block
+from tests.sim_core.energies.solid_cases import E_GEL, NU_GEL, assert_chosen_by_name, deformed, gel_block
 from tests.support.fd import dense_hessian, relative_error
 from tests.support.linear_fe import linear_stiffness
 
@@ -115,18 +112,7 @@ def test_an_inverted_tet_has_infinite_energy() -> None:
 def test_the_gel_element_is_chosen_by_name() -> None:
     """``model.meta["solid_element"] = "modified_stvk"`` gives the solid this law (energy at a deformed state to
     1e-12); an unknown name is an error naming it."""
-    mesh = gel_block()
-    builder = ModelBuilder()
-    builder.add_solid("gel", mesh, {"youngs_modulus": E_GEL, "poisson_ratio": NU_GEL, "density": 1000.0})
-    model = builder.finalize(meta={"solid_element": "modified_stvk"})
-    solid = ElasticTerms(model).solids["gel"]
-    x = deformed(mesh.x, 5)
-    assert isinstance(solid, ModifiedStVKSolid)
-    assert solid.energy(x) == pytest.approx(modified(mesh).energy(x), rel=1e-12)
-    model.meta["solid_element"] = "modified_stkv"
-    with pytest.raises(ConfigError, match="modified_stkv"):
-        ElasticTerms(model)
-
+    assert_chosen_by_name("modified_stvk", modified, "modified_stkv")
 
 def test_the_gel_candidates_take_the_per_tet_branch() -> None:
     """The Maxwell branch (gel viscoelasticity) of this gel is that of its per-tet Stable Neo-Hookean of the same
