@@ -26,6 +26,31 @@ def stop_reason(cfg: SolverConfig, residual: float, g: np.ndarray, history: list
     return None
 
 
+STOP_CODES: tuple[str | None, ...] = (None, "velocity", "force", "stalled")
+"""The codes of :func:`stop_reasons`: index ``k`` is :func:`stop_reason`'s answer ``STOP_CODES[k]``."""
+
+
+def stop_reasons(cfg: SolverConfig, residual: np.ndarray, g_max: np.ndarray, history: np.ndarray) -> np.ndarray:
+    """:func:`stop_reason` of ``B`` iterates at once, in the same float64 comparisons: copy ``i``'s Newton update of
+    scaled size ``residual[i]`` (m/s), its gradient's largest entry ``g_max[i]`` (J/m, ``max |g_i|``) and its
+    residuals so far ``history[:, i]`` (``(it, B)``, the last row this iterate's; only the row ``stall_iterations``
+    before the last is read). NaN compares false, as there: a copy with a NaN residual or gradient is not accepted.
+
+    Returns:
+        ``(B,)`` int8 codes into :data:`STOP_CODES` (0: not converged).
+    """
+    residual, g_max = np.asarray(residual, dtype=float), np.abs(np.asarray(g_max, dtype=float))
+    velocity = residual < cfg.tol_velocity
+    force = ~velocity & (g_max < cfg.tol_force)
+    codes = np.where(velocity, 1, np.where(force, 2, 0)).astype(np.int8)
+    s = cfg.stall_iterations
+    if len(history) > s:
+        stalled = (codes == 0) & (residual < cfg.stall_tolerance_factor * cfg.tol_velocity) & (
+            residual > 0.9 * history[-1 - s])
+        codes[stalled] = 3
+    return codes
+
+
 def line_search_failure_acceptance(cfg: SolverConfig, slope: float, e0: float, residual: float) -> str | None:
     """Whether an iterate whose line search failed is accepted (relaxed): ``"line_search_roundoff"``
     when the predicted decrease ``|g.d|`` is below ``stationary_slope_rtol * |E|`` (x is stationary

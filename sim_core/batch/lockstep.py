@@ -80,6 +80,7 @@ import numpy as np
 
 from sim_core.batch.effectors import StackedBoundary
 from sim_core.batch.heap import keep_freed_memory
+from sim_core.batch.copy_outcomes import CopyOutcomes
 from sim_core.batch.iterates import HostIterates, Iterate, frozen
 from sim_core.batch.line_search import CopyLineSearch
 from sim_core.batch.lumped import LumpedQuadratic, lumped_loop_terms
@@ -92,7 +93,6 @@ from sim_core.backend import uses_taichi
 from sim_core.control import Control
 from sim_core.energies.base import DeviceGradient, DeviceHessian, SubsetHessian, declares
 from sim_core.errors import ConfigError
-from sim_core.newton_stop import accept, stop_reason
 from sim_core.solver import NewtonSolver
 from sim_core.solver_config import SolverConfig
 from sim_core.state import State
@@ -322,19 +322,15 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         step, x = self._set_up_step(state_in, control, dt, None, info)
         x = vectors.start(x)
         running = ~self.held
-        infos = [StepInfo() if r else None for r in running.tolist()]
-        limited = [self.scene.copy_of_effector(name) for name in info.limited_effectors]
-        for i, name in limited:
-            if infos[i] is not None:
-                infos[i].limited_effectors.append(name)
-        done = np.zeros(B, dtype=bool)
-        backtracked = np.zeros(B, dtype=np.int64)  # per copy its line searches' backtracks (StepInfo.backtracks)
+        # per copy how its iterations end, (B,) arrays decided over every copy (no loop over the copies until infos)
+        outcomes = CopyOutcomes(cfg, running)
+        for i, name in (self.scene.copy_of_effector(name) for name in info.limited_effectors):
+            outcomes.limited.setdefault(i, []).append(name)
+        done = outcomes.done  # (the same array: the acceptances set it)
         # row it - 1: the residuals of iteration it (a copy is open from the first iteration until it is done, so
         # its rows 0 .. it - 1 are its history)
         history = np.zeros((max(cfg.max_iterations, 1), B))
         residual = np.full(B, np.inf)
-        # stop_reason accepts no copy whose residual and largest gradient entry are both above these
-        stop_residual = max(1.0, cfg.stall_tolerance_factor) * cfg.tol_velocity
 
         def fail(mask: np.ndarray, what: str) -> _CopiesFailed:
             return _CopiesFailed({int(i): f"step {int(step_index[i])} (t = {state_in.t:.6g} s): {what}"
@@ -359,10 +355,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                 test[:] = False
             if test.any():  # the simplified Newton test of these copies: one solve with the kept factorisation
                 residual_bar = vectors.largest_norm(self._simplified_correction(step, g, test)) / dt
-                for i in np.flatnonzero(test & (residual_bar < cfg.simplified_newton_check * cfg.tol_velocity)):
-                    infos[i].simplified_stops = 1
-                    accept(self.config, infos[i], it, residual_bar[i], "simplified")
-                    done[i] = True
+                outcomes.accept(test & (residual_bar < cfg.simplified_newton_check * cfg.tol_velocity), it,
+                                residual_bar, "simplified")
                 open_ = running & ~done
                 if not open_.any():
                     info.simplified_stops = 1  # the kept matrix is the last iterate's, not x's
@@ -394,11 +388,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                            f"({self.pcg.max_iterations} iterations)")
             residual[open_] = step_max[open_] / dt
             history[it - 1, open_] = residual[open_]
-            for i in np.flatnonzero(open_ & ((residual < stop_residual) | (g_max < cfg.tol_force))):
-                reason = stop_reason(self.config, residual[i], g_max[i:i + 1], history[:it, i])
-                if reason is not None:
-                    accept(self.config, infos[i], it, residual[i], reason)
-                    done[i] = True
+            outcomes.stop_tests(it, open_, residual, g_max, history[:it])
             open_ = running & ~done
             if not open_.any():
                 break
@@ -411,15 +401,12 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             released_before = info.released_sides
             x_new, g_new, contact_new, x_search_new, accepted, backtracks = self._line_search_copies(
                 step, x, d, alpha, slope, open_, contact_terms, x_search, info)
-            backtracked[open_] += np.asarray(backtracks, dtype=np.int64)[open_]
+            outcomes.backtracks[open_] += np.asarray(backtracks, dtype=np.int64)[open_]
             failed_ls = open_ & ~accepted
             if failed_ls.any():
-                for i in np.flatnonzero(failed_ls):
-                    infos[i].line_search_failures += 1
+                outcomes.line_search_failures[failed_ls] += 1
                 relaxed = failed_ls & (residual < cfg.line_search_tolerance_factor * cfg.tol_velocity)
-                for i in np.flatnonzero(relaxed):
-                    accept(self.config, infos[i], it, residual[i], "line_search_relaxed")
-                    done[i] = True
+                outcomes.accept(relaxed, it, residual, "line_search_relaxed")
                 stuck = failed_ls & ~relaxed
                 if stuck.any():
                     self._trial_energy = None  # a released side changes the energies
@@ -428,8 +415,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                     if not released:
                         raise fail(stuck, f"line search failed at Newton iteration {it} (no decrease along the "
                                           f"Newton direction; residual {', '.join(f'{residual[i]:.3g}' for i in np.flatnonzero(stuck))} m/s)")
-                    for i in np.flatnonzero(stuck):
-                        infos[i].released_sides += released
+                    outcomes.released_sides[stuck] += released
                     # the stacked energy changed where the stuck copies stand: their gradient again
                     x_new = Iterate(frozen(x_new.host.copy()), x_new.device)
             if np.any(open_ & (backtracks >= cfg.stale_side_backtracks)):
@@ -458,15 +444,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             if isinstance(elastic, StackedElasticTerms):
                 elastic.device_positions = None
         frozen(state_out.v)  # a new array of the step's: the next step's record keeps it without a copy
-        for i in np.flatnonzero(running).tolist():
-            st = infos[i]
-            st.backtracks = int(backtracked[i])
-            st.energy = float("nan")  # one incremental potential of all copies: StepInfo.energy of the stack
-            st.factorizations = info.factorizations
-            st.projected_iterations = info.projected_iterations
-            st.time_assembly = info.time_assembly
-            st.time_linear_solve = info.time_linear_solve
-        info.iterations = max((st.iterations for st in infos if st is not None), default=0)
+        infos = outcomes.infos(info)
+        info.iterations = int(outcomes.iteration[running].max(initial=0))
         self.last_stacked_info = info
         return infos
 
