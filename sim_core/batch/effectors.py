@@ -107,11 +107,16 @@ class StackedBoundary:
 
     def __init__(self, model, copies: int, names: list[str]) -> None:
         self.model, self.copies = model, copies
-        self._effectors = []  # per scene effector: (stacked names, copy 0's effector, their vertices (B k,))
+        # per scene effector: (stacked names, copy 0's effector, their vertices (B k,), and those vertices' DoFs
+        # (3 B k,): the driven positions are written through the flat array, one element an index; NumPy's row
+        # indexing of an (N, 3) array by an index array goes index by index through its (3,) rows, ~10x slower
+        # (NumPy 2.4: 18 against 0.7 ms for Forming's 123,904 driven vertices at B = 1024, docs/gpu_roofline.md)
+        self._effectors = []
         for name in names:
             keys = [f"{name}#{i}" for i in range(copies)]
             vertices = np.stack([model.effectors[k].vertices for k in keys]).ravel()
-            self._effectors.append((keys, model.effectors[keys[0]], vertices))
+            dofs = (3 * vertices[:, None] + np.arange(3)).ravel()
+            self._effectors.append((keys, model.effectors[keys[0]], vertices, dofs))
         self._static: np.ndarray | None = None  # the model's vertex_fixed the mask was made of
         self._fixed: np.ndarray | None = None
 
@@ -121,7 +126,7 @@ class StackedBoundary:
         static = self.model.vertex_fixed
         if self._fixed is None or not np.array_equal(static, self._static):
             fixed = static.copy()
-            for _, _, vertices in self._effectors:
+            for _, _, vertices, _ in self._effectors:
                 fixed[vertices] = True
             fixed.flags.writeable = False
             self._static, self._fixed = static.copy(), fixed
@@ -139,7 +144,7 @@ class StackedBoundary:
         """
         x_target = state.x.copy()
         poses, openings, limited = {}, {}, []
-        for keys, ref, vertices in self._effectors:
+        for keys, ref, _, dofs in self._effectors:
             pose = np.array([state.effector_pose[k] for k in keys], dtype=float)
             aimed = np.array([k in control.effector_pose_target for k in keys])
             if aimed.any():
@@ -155,7 +160,7 @@ class StackedBoundary:
                 local = local + (0.5 * (opening - ref.initial_opening))[:, None, None] * np.outer(
                     ref.finger_sign, ref.finger_axis)[None]
             driven = np.matmul(local, np.swapaxes(quat_to_matrix(pose[:, 3:7]), 1, 2)) + pose[:, None, :3]
-            x_target[vertices] = driven.reshape(-1, 3)
+            x_target.reshape(-1)[dofs] = driven.reshape(-1)  # (x_target: a new C-contiguous array, the view its)
             poses.update(zip(keys, pose))
             openings.update(zip(keys, opening.tolist()))
         return self.fixed(), x_target, poses, openings, limited
