@@ -8,7 +8,8 @@ per term (one kernel launch per fused energy on a Taichi backend), assembles one
 
 * convergence: copy ``i``'s scaled Newton update ``max_v |d_iv| / dt`` and gradient are tested by
   the solver's stopping tests (:func:`sim_core.newton_stop.stop_reason`: velocity, force, stalled; the
-  simplified Newton test, below); a copy
+  simplified Newton test, below), made over the copies' ``(B,)`` arrays with their acceptance records
+  (:class:`~sim_core.batch.copy_outcomes.CopyOutcomes`: no loop over the copies in the iterations); a copy
   that has converged takes no further update (its right-hand side is zeroed, so its block of the
   solution is zero) while the others iterate; the envelope neither gathers nor factorises its matrix
   (:attr:`LockstepSolver.skip_closed_copies`; the other terms are still evaluated for every copy);
