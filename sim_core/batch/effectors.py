@@ -92,17 +92,6 @@ def limit_pose_steps(current: np.ndarray, target: np.ndarray, max_translation: f
     return np.concatenate([p_c + dp, q_new], axis=1), moved | turned
 
 
-def rotated(R: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``R_b p_i`` of every rotation ``R`` ``(B, 3, 3)`` and point ``points`` ``(k, 3)``, as ``(B, 3, k)`` (coordinate
-    before point: the inner loops over the points): three products and sums over ``(B, 3, k)``, not a ``(3, 3)``
-    matrix product a copy, nor a BLAS call (whose worker threads, spinning after it, took the host's cores from the
-    step's NumPy on a loaded machine)."""
-    out = R[:, :, 0, None] * points[:, 0]
-    out += R[:, :, 1, None] * points[:, 1]
-    out += R[:, :, 2, None] * points[:, 2]
-    return out
-
-
 class StackedBoundary:
     """:meth:`sim_core.solver.NewtonSolver.boundary` of a stacked model whose effectors are the scene's ``names`` per
     copy (``<name>#<copy>``, :mod:`sim_core.batch.stacked`), vectorised over the ``copies`` (module docstring), with
@@ -118,17 +107,16 @@ class StackedBoundary:
 
     def __init__(self, model, copies: int, names: list[str]) -> None:
         self.model, self.copies = model, copies
-        # per scene effector: (stacked names, copy 0's effector, their vertices (B k,), and those vertices' DoFs in
-        # the order (copy, coordinate, vertex) of the driven positions as __call__ makes them (B, 3, k): written through
-        # the flat array, one element an index; NumPy's row indexing of an (N, 3) array by an index array goes index
-        # by index through its (3,) rows, ~10x slower (NumPy 2.4: 18 against 0.7 ms for Forming's 123,904 driven
-        # vertices at B = 1024, docs/gpu_roofline.md)
+        # per scene effector: (stacked names, copy 0's effector, their vertices (B k,), and those vertices' DoFs
+        # (3 B k,): the driven positions are written through the flat array, one element an index; NumPy 2.4's row
+        # indexing of an (N, 3) array by an index array is ~10x slower than that (18 against 0.7 ms for Forming's
+        # 123,904 driven vertices at B = 1024 on the CI's VM; NumPy 2.5 on the H200 host: 1.45 against 0.85 ms)
         self._effectors = []
         for name in names:
             keys = [f"{name}#{i}" for i in range(copies)]
-            vertices = np.stack([model.effectors[k].vertices for k in keys])
-            dofs = (3 * vertices[:, None, :] + np.arange(3)[None, :, None]).ravel()
-            self._effectors.append((keys, model.effectors[keys[0]], vertices.ravel(), dofs))
+            vertices = np.stack([model.effectors[k].vertices for k in keys]).ravel()
+            dofs = (3 * vertices[:, None] + np.arange(3)).ravel()
+            self._effectors.append((keys, model.effectors[keys[0]], vertices, dofs))
         self._static: np.ndarray | None = None  # the model's vertex_fixed the mask was made of
         self._fixed: np.ndarray | None = None
 
@@ -166,13 +154,12 @@ class StackedBoundary:
                 limited += [k for k, hit in zip(np.asarray(keys)[aimed], was_limited) if hit]
             opening = np.array([float(control.gripper_target.get(k, state.gripper_opening.get(k, ref.initial_opening)))
                                 for k in keys])
-            # x_i = R (p_i + s_i (opening - opening_0) / 2 a) + t of every copy as (B, 3, k)
-            R = quat_to_matrix(pose[:, 3:7])
-            driven = rotated(R, np.asarray(ref.local_points, dtype=float))
+            points = np.asarray(ref.local_points, dtype=float)
+            local = np.broadcast_to(points, (self.copies,) + points.shape)
             if ref.finger_sign is not None:
-                driven += (0.5 * (opening - ref.initial_opening))[:, None, None] * rotated(
-                    R, np.outer(ref.finger_sign, ref.finger_axis))
-            driven += pose[:, :3, None]
+                local = local + (0.5 * (opening - ref.initial_opening))[:, None, None] * np.outer(
+                    ref.finger_sign, ref.finger_axis)[None]
+            driven = np.matmul(local, np.swapaxes(quat_to_matrix(pose[:, 3:7]), 1, 2)) + pose[:, None, :3]
             x_target.reshape(-1)[dofs] = driven.reshape(-1)  # (x_target: a new C-contiguous array, the view its)
             poses.update(zip(keys, pose))
             openings.update(zip(keys, opening.tolist()))
