@@ -495,13 +495,16 @@ class ContactSet:
     def _vertex_triangle(self, vt: np.ndarray, sides: np.ndarray,
                          vertices: np.ndarray | None = None) -> VertexTriangleContact:
         """Vertex-triangle penalty over pairs ``vt`` with the step's sides (:func:`step_sides`) and their vertices
-        (None: computed)."""
-        return self._pair_classes()[0](vt, self.triangles, sides, self.stiffness, self.eps, vertices=vertices)
+        (None: computed); the pairs (this contact set's candidates) and sides (-1, 0, +1 by construction) are not
+        checked again (``checked``: no pass over every candidate)."""
+        return self._pair_classes()[0](vt, self.triangles, sides, self.stiffness, self.eps, vertices=vertices,
+                                       checked=True)
 
     def _edge_edge(self, ee: np.ndarray, sides: np.ndarray, vertices: np.ndarray | None = None) -> EdgeEdgeContact:
         """Edge-edge penalty over pairs ``ee`` with the step's sides (:func:`step_sides`) and their vertices (None:
-        computed)."""
-        return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps, vertices=vertices)
+        computed); not checked again, as :meth:`_vertex_triangle`."""
+        return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps, vertices=vertices,
+                                       checked=True)
 
     def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray,
                        lists: CandidateVertices | None = None) -> PairGeometry:
