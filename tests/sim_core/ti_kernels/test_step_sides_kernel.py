@@ -71,7 +71,7 @@ def test_the_codes_and_placed_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, mon
     some) and beside their face (its side not taken), the near-parallel threshold at several values and an empty
     kind: the int8 codes' geometry (every row and chosen rows) equals ``pair_codes``' and the placed sides and ``keep``
     equal the host path's exactly; on CUDA (emulated) the device codes and sides hold the same values."""
-    from sim_core.energies.contact.sides_kernel import side_codes, step_sides_of
+    from sim_core.energies.contact.sides_kernel import kept_rows, side_codes, step_sides_of
 
     if emulated:
         _emulate_cuda(monkeypatch)
@@ -123,6 +123,8 @@ def test_the_codes_and_placed_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, mon
                 assert np.any(want[len(vt):] != 0.0) and np.any(keep) and np.any(~keep)
     with pytest.raises(ValueError, match="remembered row outside"):
         step_sides_of(codes, (np.array([len(codes.codes)]), np.array([1.0])))
+    with pytest.raises(ValueError, match="without a device copy"):
+        kept_rows(codes._replace(device=None))
     with pytest.raises(ValueError, match="C-contiguous int32"):
         side_codes(x, vt.astype(np.int64), ee, 0.1, {})
 
