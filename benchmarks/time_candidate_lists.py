@@ -8,7 +8,10 @@ first reported: ``thinshell bench batch``'s rate), then ``--repeat`` times drops
 search, its sides, vertices and pair batch: what a trial point outside the last search's cover costs) and builds them
 again with :meth:`~sim_core.contact_set.ContactSet.potentials` at the batch's positions, the step's memory, then
 ``--repeat`` times makes a step's potentials over the kept lists (a new step's memory: sides measured and placed again,
-new potentials and pair batch: what every step's start costs). Reports a build's wall time (ms, median), the part of it
+new potentials and pair batch: what every step's start costs), then ``--repeat`` times a steady step's contact and
+friction set-up at ``x^n`` over the kept lists (``ContactSet.friction``: potentials, sides from the last end's codes,
+the pair batch's evaluation of ``x^n``, friction rows; wall, inside launches and copies, host, copies, MB). Reports a
+build's wall time (ms, median), the part of it
 inside Taichi launches and synchronous copies (cProfile, the launch calls' cumulative time), the host's rest, the
 synchronous copies (count, MB) and new device arrays a build, the lists' lengths, and the step's potentials' wall time
 (ms, median). The candidate lists' host work is the host's rest: on a GPU the launches are asynchronous and a copy
@@ -81,6 +84,7 @@ def main() -> int:
             megabytes.append(counts["bytes"] / 1e6)
             arrays.append(counts["arrays"])
         vt, ee = contact._candidates[1:]
+        end_geometry = contact._end_geometry  # (the codes the last step's end measured: the next start's sides)
         again = []  # a step's potentials over the kept lists (new sides: what every step's start costs)
         for _ in range(args.repeat):
             memory = contact.begin_step(x, engine.state.contact_memory)
@@ -88,16 +92,45 @@ def main() -> int:
             t = time.perf_counter()
             contact.potentials(x, x, memory)
             again.append(1e3 * (time.perf_counter() - t))
+        setup = _time_setup(contact, x, engine.state.contact_memory, run.batch.sims[0].dt, end_geometry, args.repeat,
+                            counts)
         med = statistics.median
         print(f"B={B}: candidate lists {len(vt)} vertex-triangle + {len(ee)} edge-edge pairs "
               f"({len(pots)} potentials); a build (median of {args.repeat}): {med(walls):.1f} ms, launches and "
               f"copies {med(inside):.1f} ms, host {med(walls) - med(inside):.1f} ms; synchronous copies "
               f"{med(copies):.0f}, {med(megabytes):.1f} MB; new device arrays {med(arrays):.0f}; a step's potentials "
               f"over the kept lists {med(again):.1f} ms", flush=True)
+        print(f"B={B}: a step's contact and friction set-up at x^n over the kept lists (median of {args.repeat}): "
+              f"{med(setup[0]):.1f} ms, launches and copies {med(setup[1]):.1f} ms, host "
+              f"{med([w - i for w, i in zip(*setup[:2])]):.1f} ms; synchronous copies {med(setup[2]):.0f}, "
+              f"{med(setup[3]):.1f} MB", flush=True)
         if args.top:
             stats.sort_stats("tottime").print_stats(args.top)
         del run, engine, solver, contact, pots
     return 0
+
+
+def _time_setup(contact, x, state_memory, dt: float, end_geometry, repeat: int, counts: dict) -> tuple[list, ...]:
+    """``repeat`` times a steady step's contact and friction set-up at ``x^n = x`` over the kept lists
+    (:meth:`~sim_core.contact_set.ContactSet.friction` after ``begin_step``: the step's pair potentials, their sides from
+    the codes the last step's end measured, ``end_geometry``, and the friction rows; no evaluation handed on from the
+    last potentials, so the pair batch measures ``x^n``, as at a step whose sides changed); returns lists of the wall ms,
+    the ms inside launches and synchronous copies (cProfile), the copies and their MB."""
+    walls, inside, copies, megabytes = [], [], [], []
+    for _ in range(repeat):
+        memory = contact.begin_step(x, state_memory)
+        contact._end_geometry, contact._last_pots = end_geometry, ()
+        counts.clear()
+        prof = cProfile.Profile()
+        t = time.perf_counter()
+        prof.enable()
+        contact.friction(x, dt, memory)
+        prof.disable()
+        walls.append(1e3 * (time.perf_counter() - t))
+        inside.append(1e3 * _device_time(pstats.Stats(prof)))
+        copies.append(counts["copies"])
+        megabytes.append(counts["bytes"] / 1e6)
+    return walls, inside, copies, megabytes
 
 
 def _forget_lists(contact) -> None:

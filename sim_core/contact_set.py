@@ -152,6 +152,7 @@ class ContactSet:
         self._pool = ArrayPool()  # the lists' vertex arrays, reused once no list, potential or cache holds them
         self.min_edge_sine = 0.1
         self._sides_device = None  # (the host sides' array, its device copy or None) of the last _device_pair_sides
+        self._rows_device = None  # (the edge-edge rows kept, their KeptRows) of the last _device_pair_sides on CUDA
         # searches look ahead along the step's motion (see _search_position)
         self.lookahead = 0.5
         self.lookahead_cap = 0.25
@@ -161,7 +162,7 @@ class ContactSet:
         """Start a step at ``x^n`` with the state's side memory (a fresh one when None)."""
         self.x_prev = np.asarray(x_n, dtype=float)
         self._cache = None
-        self._step_table = None  # (memory, x^n, vt pairs, ee pairs, (vt sides, ee keep, ee sides)) of the last search
+        self._step_table = None  # (memory, x^n, vt pairs, ee pairs, (vt sides, ee rows kept, ee sides)) of the last search
         self._released = _NO_RELEASES
         return memory.copy() if memory is not None else CollisionMemory()
 
@@ -494,13 +495,16 @@ class ContactSet:
     def _vertex_triangle(self, vt: np.ndarray, sides: np.ndarray,
                          vertices: np.ndarray | None = None) -> VertexTriangleContact:
         """Vertex-triangle penalty over pairs ``vt`` with the step's sides (:func:`step_sides`) and their vertices
-        (None: computed)."""
-        return self._pair_classes()[0](vt, self.triangles, sides, self.stiffness, self.eps, vertices=vertices)
+        (None: computed); the pairs (this contact set's candidates) and sides (-1, 0, +1 by construction) are not
+        checked again (``checked``: no pass over every candidate)."""
+        return self._pair_classes()[0](vt, self.triangles, sides, self.stiffness, self.eps, vertices=vertices,
+                                       checked=True)
 
     def _edge_edge(self, ee: np.ndarray, sides: np.ndarray, vertices: np.ndarray | None = None) -> EdgeEdgeContact:
         """Edge-edge penalty over pairs ``ee`` with the step's sides (:func:`step_sides`) and their vertices (None:
-        computed)."""
-        return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps, vertices=vertices)
+        computed); not checked again, as :meth:`_vertex_triangle`."""
+        return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps, vertices=vertices,
+                                       checked=True)
 
     def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray,
                        lists: CandidateVertices | None = None) -> PairGeometry:
@@ -594,19 +598,20 @@ class ContactSet:
 
     def _pair_sides(self, x_ref: np.ndarray, memory: CollisionMemory, vt: np.ndarray, ee: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(vt sides, ee keep, ee sides)`` of the candidate lists ``vt`` ``(p, 2)`` (vertex-triangle) and ``ee``
-        ``(q, 2)`` (edge-edge) at ``x_ref``, shapes ``(p,)``, ``(q,)``, ``(q,)``.
+        """``(vt sides, ee rows kept, ee sides)`` of the candidate lists ``vt`` ``(p, 2)`` (vertex-triangle) and ``ee``
+        ``(q, 2)`` (edge-edge) at ``x_ref``, shapes ``(p,)``, ``(r,)`` (int64, increasing), ``(q,)``.
 
         ``vt sides``: the step sides (:func:`step_sides`). Near-parallel edge pairs have no
         well-defined side (the cross product of their directions vanishes) and switch distance
         definitions as they rotate; their contact is carried by the vertex-triangle pairs of the
-        same configuration, so they are left out (``keep`` False, side 0; decided at x^n, so the set
-        is fixed within the step). ``ee sides``: the step sides of the kept pairs.
+        same configuration, so they are left out (not among the rows kept, side 0; decided at x^n, so the set
+        is fixed within the step). ``ee sides``: the step sides of the kept pairs. On CUDA the rows kept come from the
+        device with the pair batch's layout rows (:meth:`_device_pair_sides`, :attr:`_rows_device`).
         """
         geo = self._candidate_geometry(x_ref, vt, ee)
         vt_keys, ee_keys = self._list_vertices(vt, ee).keys()
         block = np.empty(len(vt) + len(ee))  # both kinds' sides in one array: the pair batch's (_search)
-        self._sides_device = None
+        self._sides_device = self._rows_device = None
         if not isinstance(geo, ListGeometry):  # the codes of the device path (_list_geometry)
             if (vt_keys is not None or not len(vt)) and (ee_keys is not None or not len(ee)):
                 return self._device_pair_sides(geo, memory, (vt_keys, ee_keys), block)
@@ -614,7 +619,7 @@ class ContactSet:
         vt_sides = step_sides(geo.vt_above, vt, geo.vt_side, memory.vertex_triangle, vt_keys, block[:len(vt)])
         keep = geo.ee_keep
         ee_sides = step_sides(keep & geo.ee_interior, ee, geo.ee_side, memory.edge_edge, ee_keys, block[len(vt):])
-        return vt_sides, keep, ee_sides
+        return vt_sides, np.flatnonzero(keep), ee_sides
 
     def _sides_on_device(self) -> bool:
         """Whether the lists' geometry is their :class:`~sim_core.energies.contact.sides_kernel.SideCodes` and the step
@@ -633,7 +638,9 @@ class ContactSet:
         """:meth:`_pair_sides` from the lists' :class:`~sim_core.energies.contact.sides_kernel.SideCodes` at ``x^n``
         (:func:`~sim_core.energies.contact.sides_kernel.step_sides_of`) with the memory's pairs placed among the lists'
         sorted ``keys`` (a search a remembered pair; ``block`` ``(p + q,)`` the sides' array); on CUDA the sides'
-        device copy is kept for the pair batch (:attr:`_sides_device`)."""
+        device copy is kept for the pair batch (:attr:`_sides_device`), and the edge-edge rows kept come with the
+        batch's layout rows made on the device (:class:`~sim_core.energies.contact.sides_kernel.KeptRows`, kept as
+        :attr:`_rows_device`: no host pass over the edge-edge candidates' codes)."""
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.energies.contact.sides_kernel import step_sides_of
 
@@ -643,7 +650,9 @@ class ContactSet:
         got = step_sides_of(codes, (np.concatenate([found[0][0], found[1][0] + p]),
                                     np.concatenate([found[0][1], found[1][1]])), block)
         self._sides_device = (block, got.device)
-        return block[:p], got.ee_keep, block[p:]
+        rows = got.kept_edge_edge_rows()
+        self._rows_device = None if got.kept is None else (rows, got.kept)
+        return block[:p], rows, block[p:]
 
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
         """Potentials over ``candidates`` with the step's sides (:meth:`_pair_sides`, of every pair in one geometry
@@ -655,12 +664,11 @@ class ContactSet:
         table = getattr(self, "_step_table", None)
         if (table is not None and table[0] is memory and table[1] is x_ref and self.x_prev is not None
                 and table[2] is vt and table[3] is ee):
-            vt_sides, keep, ee_sides = table[4]
+            vt_sides, ee_rows, ee_sides = table[4]
         else:
-            vt_sides, keep, ee_sides = self._pair_sides(x_ref, memory, vt, ee)
-            self._step_table = (memory, x_ref, vt, ee, (vt_sides, keep, ee_sides))
+            vt_sides, ee_rows, ee_sides = self._pair_sides(x_ref, memory, vt, ee)
+            self._step_table = (memory, x_ref, vt, ee, (vt_sides, ee_rows, ee_sides))
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
-        ee_rows = np.flatnonzero(keep)
         lists = self._list_vertices(vt, ee)
         ee_kept = np.take(ee, ee_rows, axis=0)
         pots = (self._vertex_triangle(vt, vt_sides, lists.vt_vertices),
@@ -676,7 +684,10 @@ class ContactSet:
             whole = vt_sides.base if vt_sides.base is not None and vt_sides.base is ee_sides.base else None
             kept = getattr(self, "_sides_device", None)  # the same sides where the sides' launch wrote them
             device = kept[1] if kept is not None and whole is not None and kept[0] is whole else None
-            PairBatch(*pots, layout=lists.batch_layout(ee_rows), sides=whole, device_sides=device)
+            made = getattr(self, "_rows_device", None)  # the layout rows where the kept rows' launch wrote them
+            made = made[1] if made is not None and made[0] is ee_rows else None
+            PairBatch(*pots, layout=lists.batch_layout(ee_rows, None if made is None else made.rows), sides=whole,
+                      device_sides=device, device_rows=None if made is None else made.device)
         return pots, ee_rows
 
     def _list_vertices(self, vt: np.ndarray, ee: np.ndarray) -> CandidateVertices:

@@ -225,6 +225,10 @@ class PairBatch:
             least ``len(local)`` rows, never written while the batch holds it: the contact set's step sides' launch,
             :func:`~sim_core.energies.contact.sides_kernel.step_sides_of`), taken instead of a copy of
             ``sides`` sent once; None: ``sides`` sent.
+        device_rows: the layout's ``rows`` where a CUDA launch reads them (an int32 Taichi ndarray of at least
+            ``len(rows)`` rows holding them, never written while the batch holds it: the contact set's kept rows'
+            launch, :func:`~sim_core.energies.contact.sides_kernel.kept_rows`), taken instead of a copy of ``rows``
+            sent once; None: ``rows`` sent.
 
     Pairs and sides are fixed at construction (as the potentials' are); each potential's own ``eps``
     is read at every evaluation. The kernel reads pair ``k``'s vertices and side at row ``layout.rows[k]``.
@@ -267,7 +271,7 @@ class PairBatch:
     orders the active pairs in ``a^2`` comparisons). The values are the same."""
 
     def __init__(self, vt, ee, layout: BatchLayout | None = None, sides: np.ndarray | None = None,
-                 device_sides=None) -> None:
+                 device_sides=None, device_rows=None) -> None:
         require_backend("PairBatch")
         # the potentials hold the batch (_batch) and it holds them weakly: no reference cycle, so that a step's
         # batches, their device arrays and candidate layouts go when their potentials go (not at a full collection)
@@ -300,6 +304,8 @@ class PairBatch:
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         if device_sides is not None and sides is not None:  # the given sides' device copy, taken as it is
             self._device["sides"] = (self.sides, device_sides, None)
+        if device_rows is not None:  # the layout rows' device copy, taken as it is (buffers.on_device's entry)
+            self._device["all_rows"] = (self._all, device_rows, None)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
         self._own_int32: np.ndarray | None = None  # ``own`` as int32 (_own32)
         self._vertices_every: np.ndarray | None = None  # the pairs' vertices, int32 (_every_vertex)

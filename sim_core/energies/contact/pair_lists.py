@@ -131,15 +131,25 @@ class CandidateVertices:
             return PairVertices(ee_kept, self._edges, edge_edge_vertices)
         return np.take(self.ee_vertices, ee_rows, axis=0)
 
-    def batch_layout(self, ee_rows: np.ndarray) -> "BatchLayout":
+    def batch_layout(self, ee_rows: np.ndarray, rows: np.ndarray | None = None) -> "BatchLayout":
         """The :class:`BatchLayout` of a pair batch over every vertex-triangle candidate and the edge-edge candidates
         ``ee_rows`` (int ``(r,)``, increasing), in that order; the compaction of every candidate's vertices is made on
-        first use and kept."""
+        first use and kept. ``rows``: the layout's rows where the caller has them (int32 ``(p + r,)``: ``0 .. p - 1``,
+        then ``p + ee_rows``; the rows made on the device,
+        :class:`~sim_core.energies.contact.sides_kernel.KeptRows`), taken as they are; None: made here.
+
+        Raises:
+            ValueError: ``rows`` not int32 of ``p + r`` rows."""
         if self._compact is None:
             self._compact = self._compaction()
         own, local = self._compact
         p = len(self.vt)
         ee_rows = np.asarray(ee_rows, dtype=np.int64)
+        if rows is not None:
+            if rows.shape != (p + len(ee_rows),) or rows.dtype != np.int32:
+                raise ValueError(f"CandidateVertices.batch_layout: rows of shape {rows.shape} ({rows.dtype}) for "
+                                 f"{p} + {len(ee_rows)} pairs, want int32")
+            return BatchLayout(own, local, rows, ee_rows, self.device)
         rows = np.empty(p + len(ee_rows), dtype=np.int32)
         rows[:p] = np.arange(p, dtype=np.int32)
         np.add(ee_rows, p, out=rows[p:], casting="unsafe")

@@ -72,12 +72,13 @@ def _check_penalty(stiffness: float, eps: float, where: str) -> None:
         raise ConfigError(f"{where}: contact eps must be finite and > 0 (m), got {eps}")
 
 
-def _check_sides(sides: np.ndarray, count: int, where: str) -> np.ndarray:
+def _check_sides(sides: np.ndarray, count: int, where: str, values: bool = True) -> np.ndarray:
+    """``sides`` as float64 ``(count,)``; with ``values`` each checked to be +1, -1 or 0 (a pass over every pair)."""
     sides = np.asarray(sides, dtype=float).reshape(-1)
     if sides.shape[0] != count:
         raise ConfigError(f"{where}: {count} pairs but {sides.shape[0]} sides")
     # (|s| == 1 or s == 0 by comparisons only: boolean temporaries, no float64 copy of a million sides)
-    if not np.all((sides == 1.0) | (sides == -1.0) | (sides == 0.0)):
+    if values and not np.all((sides == 1.0) | (sides == -1.0) | (sides == 0.0)):
         raise ConfigError(f"{where}: sides must be +1 or -1 (0: unsigned)")
     return sides
 
@@ -508,21 +509,24 @@ class VertexTriangleContact(_PairPenalty):
         eps: contact offset in m (> 0).
         vertices: the pairs' global vertices ``(p, 4)`` as :func:`vertex_triangle_vertices` gives them, when the
             caller has them (a contact set's candidate lists: once per search), else computed here.
+        checked: the pairs' triangle rows and the sides' values are known good (a contact set's candidate lists and
+            its step sides, made from the side codes: valid by construction): the passes over every pair that check
+            them are not made (the shapes still are).
 
     Raises:
         ConfigError: bad stiffness, eps, sides or shapes.
     """
 
     def __init__(self, pairs: np.ndarray, triangles: np.ndarray, sides: np.ndarray, stiffness: float, eps: float,
-                 vertices: np.ndarray | None = None):
+                 vertices: np.ndarray | None = None, checked: bool = False):
         where = "VertexTriangleContact"
         _check_penalty(stiffness, eps, where)
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-        if pairs.size and (pairs[:, 1].min() < 0 or pairs[:, 1].max() >= triangles.shape[0]):
+        if not checked and pairs.size and (pairs[:, 1].min() < 0 or pairs[:, 1].max() >= triangles.shape[0]):
             raise ConfigError(f"{where}: triangle index out of range [0, {triangles.shape[0]})")
         self.pairs = pairs
-        self.sides = _check_sides(sides, pairs.shape[0], where)
+        self.sides = _check_sides(sides, pairs.shape[0], where, values=not checked)
         if vertices is None:
             vertices = vertex_triangle_vertices(pairs, triangles)
         elif np.shape(vertices) != (pairs.shape[0], 4):
@@ -568,21 +572,23 @@ class EdgeEdgeContact(_PairPenalty):
         eps: contact offset in m (> 0).
         vertices: the pairs' global vertices ``(p, 4)`` as :func:`edge_edge_vertices` gives them, when the
             caller has them (a contact set's candidate lists: once per search), else computed here.
+        checked: the pairs' edge rows and the sides' values are known good (as for
+            :class:`VertexTriangleContact`): not checked again.
 
     Raises:
         ConfigError: bad stiffness, eps, sides or shapes.
     """
 
     def __init__(self, pairs: np.ndarray, edges: np.ndarray, sides: np.ndarray, stiffness: float, eps: float,
-                 vertices: np.ndarray | None = None):
+                 vertices: np.ndarray | None = None, checked: bool = False):
         where = "EdgeEdgeContact"
         _check_penalty(stiffness, eps, where)
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-        if pairs.size and (pairs.min() < 0 or pairs.max() >= edges.shape[0]):
+        if not checked and pairs.size and (pairs.min() < 0 or pairs.max() >= edges.shape[0]):
             raise ConfigError(f"{where}: edge index out of range [0, {edges.shape[0]})")
         self.pairs = pairs
-        self.sides = _check_sides(sides, pairs.shape[0], where)
+        self.sides = _check_sides(sides, pairs.shape[0], where, values=not checked)
         if vertices is None:
             vertices = edge_edge_vertices(pairs, edges)
         elif np.shape(vertices) != (pairs.shape[0], 4):

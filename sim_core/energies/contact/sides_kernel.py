@@ -17,7 +17,12 @@ copies: 7.6 MB back, 15 MB up, and the host's passes over every pair). Here:
   the lists' sorted keys (:meth:`~sim_core.collision.memory.ContactMemory.found_in`: one search a remembered pair, no
   pass over the lists): on the host one table lookup and the remembered rows placed; on CUDA also one launch of
   :func:`_place_kernel` into a float64 array that stays on the device, which the pair batch reads as it is
-  (:class:`~sim_core.energies.contact.batch_kernel.PairBatch`'s ``device_sides``): no positions and no sides cross.
+  (:class:`~sim_core.energies.contact.batch_kernel.PairBatch`'s ``device_sides``): no positions and no sides cross;
+  and on CUDA the edge-edge pairs kept (not near-parallel) and the pair batch's layout rows made by one launch of
+  :func:`_kept_rows_kernel` from the codes where they are (a mark, the marks' running sums, a scatter:
+  :class:`KeptRows`), copied back in one piece, instead of the host's ``keep`` over every edge-edge candidate, its
+  ``flatnonzero`` and the layout rows built and sent with every new batch (:meth:`~sim_core.energies.contact.pair_lists.
+  CandidateVertices.batch_layout`).
 
 The codes measured at a step's converged positions serve the next step's sides at its ``x^n`` (the same positions and
 lists), as the host path's kept geometry does. The values equal the host path's bit for bit (tests).
@@ -35,8 +40,9 @@ from sim_core.energies.contact.setup_kernel import (_device_launch, _edge_edge_m
                                                     _positions_or_held, _vertex_triangle_code)
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import device_copy, linalg
-from sim_core.ti_kernels.buffers import LaunchArrays, copy_back, unheld_rows
+from sim_core.ti_kernels.buffers import LaunchArrays, copy_back, on_device, unheld_rows
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.scan import SCAN_CHUNK, running_sums
 
 _F64_1, _F64_2, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.I32_1, linalg.I32_2
 _I8_1 = ti.types.ndarray(dtype=ti.i8, ndim=1)
@@ -105,6 +111,31 @@ def _place_kernel(codes: _I8_1, count: ti.i32, found: _I32_1, found_count: ti.i3
             sides[row] = ti.cast(2 * (found[f] % 2) - 1, ti.f64)
 
 
+@fast_kernel
+def _kept_rows_kernel(codes: _I8_1, p: ti.i32, q: ti.i32, marks: _I32_1, chunk_total: _I32_1, rows: _I32_1):
+    """The layout rows of a pair batch over every vertex-triangle pair and the kept edge-edge pairs of lists of ``p``
+    and ``q`` pairs whose codes (:data:`_KEEP`) are ``codes[:p + q]``: ``rows[k] = k`` for ``k < p``, then ``p + j``
+    for each kept edge-edge pair ``j`` in increasing ``j`` (``rows[p .. p + r - 1]``), the count ``r`` of those in
+    ``rows[p + q]``. Scratch: ``marks`` (at least ``q + 1``: pair ``j``'s mark at ``j + 1``, then the kept pairs before
+    ``j`` at ``j``), ``chunk_total`` (at least ``ceil(q / SCAN_CHUNK)``). Integer arithmetic: the same rows in any order
+    of the threads."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(p):
+        rows[k] = k
+    ti.loop_config(serialize=True)  # one thread
+    for _ in range(1):
+        marks[0] = 0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(q):
+        code = ti.cast(codes[p + j], ti.i32)
+        marks[j + 1] = ti.select(code % _ABOVE >= _KEEP, 1, 0)
+    running_sums(marks, q, chunk_total, rows, p + q)  # the ranks; the kept count into rows[p + q]
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(q):
+        if marks[j + 1] != marks[j]:  # kept
+            rows[p + marks[j]] = p + j
+
+
 class SideCodes(NamedTuple):
     """The codes (:data:`_KEEP`) of two candidate lists at one set of positions (``split`` vertex-triangle pairs, then
     the edge-edge ones) and their step sides before the memory.
@@ -142,20 +173,45 @@ class SideCodes(NamedTuple):
         return self.rows(np.arange(self.split), np.arange(len(self.codes) - self.split))
 
 
+class KeptRows(NamedTuple):
+    """The edge-edge pairs kept (not near-parallel) of two candidate lists (``p`` vertex-triangle pairs, then ``q``
+    edge-edge ones) as a pair batch's layout rows (:class:`~sim_core.energies.contact.pair_lists.BatchLayout`), made on
+    the device (:func:`_kept_rows_kernel`).
+
+    Attributes:
+        rows: int32 ``(p + r,)`` on the host: ``0 .. p - 1``, then ``p + j`` for the ``r`` kept edge-edge pairs ``j``
+            (increasing).
+        ee_rows: int64 ``(r,)``, the kept edge-edge pairs' rows of the edge-edge list (``rows[p:] - p``).
+        device: the same rows where a CUDA launch reads them: an int32 Taichi ndarray of at least ``p + r`` rows (its
+            first rows), never written while this tuple or anything else holds it
+            (:func:`~sim_core.ti_kernels.buffers.unheld_rows`).
+    """
+
+    rows: np.ndarray
+    ee_rows: np.ndarray
+    device: object
+
+
 class DeviceSides(NamedTuple):
     """The step sides of two candidate lists (``p`` vertex-triangle pairs, then ``q`` edge-edge ones).
 
     Attributes:
         sides: float64 ``(p + q,)``, the step sides (-1, 0, +1), on the host.
-        ee_keep: bool ``(q,)``, the edge-edge pairs not near-parallel.
+        ee_keep: bool ``(q,)``, the edge-edge pairs not near-parallel, on the host; None on CUDA (:attr:`kept` instead).
         device: the same sides on CUDA: a float64 Taichi ndarray of at least ``p + q`` rows (its first rows), never
             written while this tuple or anything else holds it (:func:`~sim_core.ti_kernels.buffers.unheld_rows`); None
             elsewhere.
+        kept: on CUDA the kept edge-edge pairs as layout rows made on the device (:class:`KeptRows`); None elsewhere.
     """
 
     sides: np.ndarray
-    ee_keep: np.ndarray
+    ee_keep: np.ndarray | None
     device: object
+    kept: KeptRows | None = None
+
+    def kept_edge_edge_rows(self) -> np.ndarray:
+        """The kept edge-edge pairs' rows of the edge-edge list, int64 ``(r,)`` (increasing)."""
+        return self.kept.ee_rows if self.kept is not None else np.flatnonzero(self.ee_keep)
 
 
 _ARRAYS = LaunchArrays()
@@ -226,13 +282,34 @@ def step_sides_of(codes: SideCodes, found: tuple[np.ndarray, np.ndarray], out: n
     sides[...] = codes.steps  # (a cast: the kernel wrote the sides before the memory)
     signed = np.take(_SIGNED, np.take(codes.codes, rows))
     sides[rows[signed]] = remembered[signed]
-    keep = np.take(_KEPT, codes.codes[codes.split:].view(np.uint8))
     if codes.device is None:
-        return DeviceSides(sides, keep, None)
+        return DeviceSides(sides, np.take(_KEPT, codes.codes[codes.split:].view(np.uint8)), None)
     f = len(rows)
     coded = _ARRAYS.rows("found", f, (), np.int32)  # 2 row + (side > 0): one array sent
     np.multiply(rows, 2, out=coded[:f], casting="unsafe")
     coded[:f] += remembered > 0.0
     target = unheld_rows(_ARRAYS.spares(), "sides", count)
     _device_launch(_place_kernel, (codes.device, count, coded, f, target), outputs={})
-    return DeviceSides(sides, keep, target)
+    return DeviceSides(sides, None, target, kept_rows(codes))
+
+
+def kept_rows(codes: SideCodes) -> KeptRows:
+    """The :class:`KeptRows` of the lists of ``codes`` (on the device: ``codes.device`` not None), by one launch of
+    :func:`_kept_rows_kernel` and one copy back of its ``p + q + 1`` int32 rows into a new host array.
+
+    Raises:
+        ValueError: ``codes`` without a device copy (the host's ``keep`` is :meth:`SideCodes.geometry`'s).
+    """
+    if codes.device is None:
+        raise ValueError("kept_rows: codes without a device copy (the host's keep is SideCodes.geometry's)")
+    p = codes.split
+    q = len(codes.codes) - p
+    marks = on_device(_ARRAYS.device(), "kept_marks", _ARRAYS.rows("kept_marks", q + 1, (), np.int32), scratch=True)
+    chunk_total = on_device(_ARRAYS.device(), "kept_chunks",
+                            _ARRAYS.rows("kept_chunks", max(1, -(-q // SCAN_CHUNK)), (), np.int32), scratch=True)
+    target = unheld_rows(_ARRAYS.spares(), "layout_rows", p + q + 1, dtype=ti.i32)
+    _kept_rows_kernel(codes.device, p, q, marks, chunk_total, target)
+    host = copy_back(np.empty(target.shape[0], dtype=np.int32), target, p + q + 1)
+    r = int(host[p + q])
+    rows = host[:p + r]
+    return KeptRows(rows, np.subtract(rows[p:], p, dtype=np.int64), target)

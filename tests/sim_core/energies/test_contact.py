@@ -191,6 +191,10 @@ def test_contact_frames_give_the_force_on_the_first_side():
         (lambda: VertexTriangleContact([[0, 0]], [[1, 2, 3]], [0.5], K, EPS), r"\+1 or -1"),
         (lambda: VertexTriangleContact([[0, 4]], [[1, 2, 3]], [1.0], K, EPS), "triangle index"),
         (lambda: EdgeEdgeContact([[0, 1]], [[0, 1], [2, 3]], np.ones(2), K, EPS), "1 pairs but 2 sides"),
+        # checked (a contact set's own candidates and step sides): the values are not checked again, the shapes and
+        # the penalty's parameters still are
+        (lambda: EdgeEdgeContact([[0, 1]], [[0, 1], [2, 3]], np.ones(2), K, EPS, checked=True), "1 pairs but 2 sides"),
+        (lambda: VertexTriangleContact([[0, 0]], [[1, 2, 3]], [1.0], 0.0, EPS, checked=True), "stiffness"),
         (lambda: PlaneContact(np.arange(3), [0, 0, 0], 0.0, K, EPS), "normal"),
         (lambda: PlaneContact(np.arange(3), [0, 0, 1], 0.0, -5.0, EPS), "stiffness"),
     ],

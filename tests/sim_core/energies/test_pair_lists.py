@@ -35,6 +35,13 @@ def test_candidate_vertices_are_the_pairs_vertices_and_the_batch_layout_points_a
         assert got.dtype == want.dtype
         np.testing.assert_array_equal(got, want)
     assert layouts[1].local is layouts[0].local and layouts[1].device is lists.device  # made once, kept
+    # the layout rows given (the kept rows' launch made them on CUDA): taken as they are, checked for their length
+    given = layouts[0].rows.copy()
+    assert lists.batch_layout(rows, given).rows is given
+    with pytest.raises(ValueError, match="batch_layout: rows"):
+        lists.batch_layout(rows, given[:-1])
+    with pytest.raises(ValueError, match="batch_layout: rows"):
+        lists.batch_layout(rows, given.astype(np.int64))
     for own, local, batch_rows, ee_rows, _ in layouts:
         assert local.dtype == np.int32 and local.shape == (150 + 200, 4) and batch_rows.dtype == np.int32
         np.testing.assert_array_equal(ee_rows, rows)

@@ -150,7 +150,8 @@ def test_contact_set_builds_the_friction_rows_on_the_device_path(ti_cpu, monkeyp
 def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkeypatch):
     """Three Forming copies stepped in lockstep on CUDA's paths (emulated on the CPU arch; the envelope solver, each
     step's friction from device rows, none of its host arrays read; the candidate lists' vertices gathered where the
-    search's sort left their keys, the potentials reading theirs by rows, none gathered whole): copies 0 and 2 end
+    search's sort left their keys, the potentials reading theirs by rows, none gathered whole; the edge-edge pairs kept
+    and the pair batches' layout rows made on the device from the side codes): copies 0 and 2 end
     every step where their separate runs (CPU arch, host friction rows) end, to the solver's tolerance, a step ended
     by the simplified Newton test on the envelope's kept factors as well; copy 1, started from a non-finite velocity,
     fails alone at its first step and keeps its last good state."""
@@ -183,6 +184,11 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
     gathered = []
     gather = HashCandidates.device_vertices
     monkeypatch.setattr(HashCandidates, "device_vertices", lambda *a: gathered.append(gather(*a)) or gathered[-1])
+    from sim_core.energies.contact import sides_kernel
+
+    kept = []  # the kept edge-edge rows and the pair batch's layout rows made on the device at each step's sides
+    made = sides_kernel.kept_rows
+    monkeypatch.setattr(sides_kernel, "kept_rows", lambda codes: kept.append(made(codes)) or kept[-1])
     whole = []  # the potentials' vertices read whole (none: the rows they use, PairVertices)
     read_whole = PairVertices.__array__
     monkeypatch.setattr(PairVertices, "__array__", lambda self, *a, **k: (whole.append(self),
@@ -202,5 +208,8 @@ def test_lockstep_forming_on_the_device_rows_equals_separate_runs(ti_cpu, monkey
     assert len(built) >= steps and all(f._host is None for f in built)  # (step 0 again without copy 1)
     assert gathered and all(g is not None for g in gathered) and not whole
     assert isinstance(run.batch.lockstep.solver.contact._cache[2][1].vertices, PairVertices)
+    assert len(kept) >= steps  # the batches' layout rows from the device (none built or sent by the host)
+    batch = run.batch.lockstep.solver.contact._cache[2][1]._batch
+    assert any(batch._device["all_rows"][1] is k.device for k in kept)
     assert list(run.batch.active) == [True, False, True] and "non-finite" in run.batch.failures[1]
     np.testing.assert_array_equal(run.batch.states[1].x, start.x)

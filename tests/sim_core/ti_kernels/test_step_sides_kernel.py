@@ -71,7 +71,7 @@ def test_the_codes_and_placed_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, mon
     some) and beside their face (its side not taken), the near-parallel threshold at several values and an empty
     kind: the int8 codes' geometry (every row and chosen rows) equals ``pair_codes``' and the placed sides and ``keep``
     equal the host path's exactly; on CUDA (emulated) the device codes and sides hold the same values."""
-    from sim_core.energies.contact.sides_kernel import side_codes, step_sides_of
+    from sim_core.energies.contact.sides_kernel import kept_rows, side_codes, step_sides_of
 
     if emulated:
         _emulate_cuda(monkeypatch)
@@ -101,12 +101,19 @@ def test_the_codes_and_placed_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, mon
             placed = step_sides_of(codes, (np.concatenate([found[0][0], found[1][0] + len(lists[0])]),
                                            np.concatenate([found[0][1], found[1][1]])))
             np.testing.assert_array_equal(placed.sides, want)
-            np.testing.assert_array_equal(placed.ee_keep, keep)
+            # the edge-edge pairs kept: the host's keep, or on CUDA the rows the kept rows' launch made (no keep)
+            np.testing.assert_array_equal(placed.kept_edge_edge_rows(), np.flatnonzero(keep))
             if emulated and len(want):
                 np.testing.assert_array_equal(codes.device.to_numpy(), codes.both)
                 np.testing.assert_array_equal(placed.device.to_numpy()[:len(want)], want)
+                p = len(lists[0])
+                layout = np.concatenate([np.arange(p), p + np.flatnonzero(keep)]).astype(np.int32)
+                assert placed.ee_keep is None and placed.kept.ee_rows.dtype == np.int64
+                np.testing.assert_array_equal(placed.kept.rows, layout)
+                np.testing.assert_array_equal(placed.kept.device.to_numpy()[:len(layout)], layout)
             else:
-                assert codes.device is None and placed.device is None
+                np.testing.assert_array_equal(placed.ee_keep, keep)
+                assert codes.device is None and placed.device is None and placed.kept is None
             if p_rows == q_rows == slice(None) and min_sine == 0.1:
                 # every case met: remembered sides kept against the geometric one, and left out beside the face
                 above = geo.vt_above
@@ -116,6 +123,8 @@ def test_the_codes_and_placed_step_sides_equal_the_hosts_bit_for_bit(ti_cpu, mon
                 assert np.any(want[len(vt):] != 0.0) and np.any(keep) and np.any(~keep)
     with pytest.raises(ValueError, match="remembered row outside"):
         step_sides_of(codes, (np.array([len(codes.codes)]), np.array([1.0])))
+    with pytest.raises(ValueError, match="without a device copy"):
+        kept_rows(codes._replace(device=None))
     with pytest.raises(ValueError, match="C-contiguous int32"):
         side_codes(x, vt.astype(np.int64), ee, 0.1, {})
 
@@ -209,6 +218,9 @@ def test_forming_contact_set_with_the_launchs_sides_equals_the_hosts(ti_cpu, mon
         np.testing.assert_array_equal(got[1].to_numpy(), edge_edge_vertices(ee, search.edges))
     given = [k.get("device_sides") is not None for k in batches]
     assert all(given) if emulated else not any(given)
+    # on CUDA the batches' layout rows are those the kept rows' launch made (none built or sent by the host)
+    rows_given = [k.get("device_rows") is not None for k in batches]
+    assert all(rows_given) if emulated else not any(rows_given)
     assert len(host) == len(device)
     for want, got in zip(host, device):
         for a, b in zip(want, got):
