@@ -680,8 +680,9 @@ def choose_at_start(model: ObservationModel, names: Sequence[str], extra: Sequen
 
     With ``beside`` (the calibration's probe process, :class:`sysid.diagnose.probe_worker.ProbeWorker`) the other
     law's start replay is the one asked of it before (:func:`ask_beside`, ``thinshell sysid`` while this process makes
-    the calibration's last replay) where it is this replay (:meth:`BesideReplay.taken`), else made here; so is the
-    other law's second replay in :func:`restep`. The same replays either way: the choice and values are the same.
+    the calibration's last replay) where it is this replay (:meth:`BesideReplay.taken`), else asked of it now, beside
+    the reference law's (made here where ``made`` is not it: a calibration that kept the scene's stick speed); so is
+    the other law's second replay in :func:`restep`. The same replays either way: the choice and values are the same.
 
     Returns:
         ``(choice, model, made)``: the choice, the chosen law's model and its start replay with tangents (to hand to
@@ -698,9 +699,11 @@ def choose_at_start(model: ObservationModel, names: Sequence[str], extra: Sequen
         raise ValueError(f"choose_at_start: the model replays none of the channels {list(channels)}")
     reference, other = _reference_law(model, laws), other_law(model, laws)
     models = {reference: model, other: _with_law(model, other)}
-    first = {reference: made, other: collected(beside, other, models[other])}
-    steps = {law: law_step(m, names, {}, rows, extra=extra, made=first[law], radius=step_radius)
-             for law, m in models.items()}
+    first = collected(beside, other, models[other])  # asked while the calibration made its last replay
+    asked = first is None and ask_beside(beside, other, models[other], names, {}, extra)  # beside the reference's
+    steps = {reference: law_step(model, names, {}, rows, extra=extra, made=made, radius=step_radius)}
+    steps[other] = law_step(models[other], names, {}, rows, extra=extra, radius=step_radius,
+                            made=collected(beside, other, models[other]) if asked else first)
     choice = decide(steps, reference, model, compared, gain_prior, null_sigmas)
     choice = restep(choice, steps, models, names, rows, gain_prior, extra=extra, radius=step_radius,
                     null_sigmas=null_sigmas, beside=beside)
