@@ -10,7 +10,8 @@ process makes all of them one after the other. The fitted values, their sigmas, 
 same bit for bit, and the parent process makes two replays with tangents fewer. Each command runs in a process of its
 own (the probe process forks before Taichi starts, which a test process may have started).
 
-About 40-60 s on the VM (two sysid runs of the 28-step recording, each with its Taichi start).
+About 40 CPU s (two sysid runs of the 28-step recording, each with its Taichi start); 116 s wall on the VM at
+load ~7.
 """
 
 from __future__ import annotations
