@@ -28,7 +28,7 @@ from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_ROBUST_SIGMA, STOP_SIGMA, SYSID_STOP_RMS,
                        STOP_TRIAL_SIGMA)
-from sysid.fit_recording import FitOptions, fit_recording
+from sysid.fit_recording import FitOptions, available_cores, fit_recording
 from sysid.gel_law import AUTO_LAW, SCENE_LAW
 from sim_core.batch.sizing import batch_size_arg
 
@@ -104,7 +104,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "another law, or with a --gel-resolution coarser than the scene's, whose own error outweighs "
                         "the laws' difference); fit.json diagnostics.gel_law reports it")
     p.add_argument("--seed", type=int, default=0, help="seed of the global phase")
-    p.add_argument("--workers", type=int, default=1, help="processes for batched replays")
+    p.add_argument("--workers", type=int, default=available_cores(),
+                   help="processes for independent replays (default: the cores this process may run on, "
+                        "%(default)s here): from 2 the calibration's secant probe beside its start replay and, where "
+                        "the gel's law is compared, the other law's replays with tangents beside the scene's law's "
+                        "(a second process, sysid.diagnose.probe_worker), and the finite-difference columns and "
+                        "global populations in a pool; 1: every replay in this process, one after the other. The "
+                        "same replays and values whatever the count")
     p.add_argument("--batched", action="store_true",
                    help="replay each finite-difference Jacobian's columns and each global population together as one "
                         "batch of scene copies in this process (sim_core.batch lockstep; on --arch cuda one batched "
@@ -158,9 +164,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "a positive parameter: 0.5 is a factor 1.65; default: %(default)s; 0: least_squares' own, a "
                         "factor 13.8 within the default bounds)")
     p.add_argument("--one-process", action="store_true",
-                   help="make the calibration's replays one after the other in this process (default: its secant probe "
-                        "runs in a second process beside its start replay, as in thinshell diagnose; the same replays "
-                        "and values)")
+                   help="make every replay in this process, one after the other, as --workers 1 (default: with "
+                        "--workers 2 or more the calibration's secant probe and the other gel law's replays run in a "
+                        "second process, as thinshell diagnose's probe; the same replays and values)")
     p.add_argument("--hold-unidentified", action=argparse.BooleanOptionalAction, default=True,
                    help="hold a parameter whose robust 2-sigma interval reaches zero (at the start, or at any accepted "
                         "point) at its start value: no step along a direction the data do not determine; it is "
@@ -302,7 +308,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       robust=None if args.robust == "none" else args.robust, drive=args.drive,
                       tack=args.tack, hold_unidentified=args.hold_unidentified,
                       first_step=args.first_step or None, fit_eps_v=args.fit_eps_v, wrench_check=args.wrench_check,
-                      probe_worker=not args.one_process)
+                      probe_worker=not args.one_process and args.workers > 1)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:

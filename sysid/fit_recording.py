@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,8 +34,9 @@ from sysid.evidence import load_evidence
 from sysid.gain_prior import GainPrior
 from sysid.gain_profile import GainProfile
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, STOP_ROBUST_SIGMA, STOP_SIGMA, SYSID_STOP_RMS, STOP_TRIAL_SIGMA, Evaluation,
-                       FitResult, fit, joint_tangent_names)
-from sysid.gel_law import AUTO_LAW, auto_not_applicable, choose_at_start, gel_mesh
+                       FitResult, fit, joint_nuisance, joint_tangent_names)
+from sysid.gel_law import (AUTO_LAW, ask_beside, auto_not_applicable, choose_at_start, gel_mesh, model_parameters,
+                           other_law)
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.jacobians import TangentReplay, make_jacobian
 from sysid.observation import ObservationModel, SimTrace, scene_dict_for
@@ -42,6 +44,11 @@ from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
 from sysid.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
 from sysid.wrench_check import check_wrench
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on (its affinity: ``taskset`` limits it), at least 1."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 @dataclass(frozen=True)
@@ -101,7 +108,8 @@ class FitOptions:
             with one, the calibration depends on the machine's load).
         calibration_max_replays: replay budget of that calibration's parameter fit (None: none;
             default :data:`sysid.calibration.CALIBRATION_REPLAYS`, as ``thinshell diagnose``).
-        workers: processes for batched replays.
+        workers: processes for batched replays (finite-difference columns, global populations; ``thinshell sysid``'s
+            default: :func:`available_cores`, which also sets :attr:`probe_worker` from 2 on).
         seed: seed of the global phase.
         batched, batch_size: replay the fit's independent replays as batches of scene copies (:func:`sysid.fit.fit`).
         robust: covariance reported beside the Gauss-Newton one (:data:`sysid.covariance.ROBUST_METHODS`,
@@ -154,8 +162,10 @@ class FitOptions:
             sign; docs/benchmarks_log.md, session 54). False (``thinshell sysid --no-wrench-check``): every row fitted.
         probe_worker: make the calibration's secant probe in a second process beside its start replay, as
             ``thinshell diagnose`` does (:func:`sysid.diagnose.probe_worker.calibration_probe`: the same replays
-            and values, one replay less wall time on two cores; where it applies); False (``thinshell sysid
-            --one-process``): every replay in this process.
+            and values, one replay less wall time on two cores; where it applies), and there, where the gel's law is
+            compared, the other law's replays with tangents beside the scene's law's (:func:`sysid.gel_law.ask_beside`:
+            up to two replays with tangents less wall time); False (``thinshell sysid --workers 1`` or
+            ``--one-process``): every replay in this process.
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -353,9 +363,11 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     # the calibration's secant probe forked before this process starts Taichi (reading a parameter does), through
     # the drive, to replay beside the calibration's start replay
     made: list[TangentReplay] = []  # the calibration's secant step, replayed with the fit's first tangents
+    # after the calibration the same process makes the other gel law's replays with tangents (sysid.gel_law.ask_beside)
     worker = None if not (calibrating and options.probe_worker) else calibration_probe(
         model, calibrated, secant_replays=SECANT_REPLAYS, max_replays=options.calibration_max_replays,
         max_time=options.calibration_max_time)
+    comparing = options.gel_element == AUTO_LAW and kept is None
     try:
         for name in (*options.params, *calibrated):  # an unknown name fails here, before the calibration's replay
             if name != SHEAR_STIFFNESS_SETTING:  # the tack's decision above sets it where the layer is on
@@ -366,22 +378,29 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
             sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
                                max_replays=options.calibration_max_replays, drive=options.drive,
                                secant_first=None if worker is None else worker.result,
-                               secant_last=_secant_step_with_tangents(model, options, calibrated, made))
+                               secant_last=_secant_step_with_tangents(model, options, calibrated, made,
+                                                                      worker if comparing else None))
+        if sensor is not None and on_calibration is not None:
+            on_calibration(sensor)
+        if sensor is not None and options.profile_gains:
+            model.gain_profile = GainProfile(model, sensor.gain_prior)
+        # the calibration's secant values fitted with the materials, from where the calibration left them, where it
+        # took them (found at the start's materials); a stage that left the scene's values leaves nothing of the start
+        stage = None if sensor is None or not options.fit_eps_v else sensor.secant
+        secant = stage.names if stage is not None and stage.accepted else ()
+        fitted = [*options.params, *(n for n in secant if n not in options.params)]
+        nuisance = nuisance_of(model, options)
+        if layer_on and SHEAR_STIFFNESS_SETTING not in fitted:  # the layer's k_t fitted with the materials (its
+            fitted.append(SHEAR_STIFFNESS_SETTING)  # tangent column): held or alternated, it kept the start's (sysid.tack)
+        start = made.pop() if made else None
+        law = None
+        if comparing:  # the other law's replay with tangents, its fit's first
+            law, model, start = choose_at_start(model, fitted, _law_extra(fitted, nuisance, options), start,
+                                                gain_prior=GainPrior() if sensor is None else sensor.gain_prior,
+                                                beside=worker)
     finally:
         if worker is not None:
             worker.close()
-    if sensor is not None and on_calibration is not None:
-        on_calibration(sensor)
-    if sensor is not None and options.profile_gains:
-        model.gain_profile = GainProfile(model, sensor.gain_prior)
-    # the calibration's secant values fitted with the materials, from where the calibration left them, where it took
-    # them (found at the start's materials); a stage that left the scene's values leaves nothing of the start in them
-    stage = None if sensor is None or not options.fit_eps_v else sensor.secant
-    secant = stage.names if stage is not None and stage.accepted else ()
-    fitted = [*options.params, *(n for n in secant if n not in options.params)]
-    nuisance = nuisance_of(model, options)
-    if layer_on and SHEAR_STIFFNESS_SETTING not in fitted:  # the layer's k_t fitted with the materials (its tangent
-        fitted.append(SHEAR_STIFFNESS_SETTING)  # column): held or alternated, it kept the start's (sysid.tack)
     # with the layer, the carried card's sheet points (80 % of the residuals, whitened RMS 7 at the engine's values on
     # nominal_s109: the layer's form error) would drive the materials (s109 from -30 %: modulus -64 %, -23 % weighed);
     # each channel is weighed by its gap at the fit's start (sysid.fit.fit reweight_channels)
@@ -393,13 +412,6 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                     batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
                     stop_trial_robust=options.stop_trial_robust, hold_unidentified=options.hold_unidentified,
                     first_step=options.first_step, reweight_channels=layer_on)
-    start = made.pop() if made else None
-    law = None
-    if options.gel_element == AUTO_LAW and kept is None:  # the other law's replay with tangents, its fit's first
-        cold = options.robust is not None and not options.warm_start  # as sysid.fit.fit takes the nuisance columns
-        extra = [n for n in nuisance if n not in fitted] if cold else []
-        law, model, start = choose_at_start(model, fitted, extra, start,
-                                            gain_prior=GainPrior() if sensor is None else sensor.gain_prior)
     result = fit(model, fitted, nuisance=nuisance, made=start, **fit_args)
     fit_replays = [result.sim_runs]
     result.warnings[:0] = list(notes)
@@ -445,8 +457,14 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     return FitOutcome(result, doc, out, notes, sensor, scene)
 
 
+def _law_extra(fitted: Sequence[str], nuisance: Sequence[str], options: FitOptions) -> list[str]:
+    """The nuisance columns a gel law's step asks beside ``fitted`` (:func:`sysid.gel_law.choose_at_start` ``extra``):
+    those :func:`sysid.fit.fit` takes in its joint replays (:func:`sysid.fit.joint_nuisance`)."""
+    return joint_nuisance(fitted, nuisance, robust=options.robust, warm_start=options.warm_start)
+
+
 def _secant_step_with_tangents(model: ObservationModel, options: FitOptions, calibrated: Sequence[str],
-                               made: list[TangentReplay]) -> Callable[[dict[str, float]], SimTrace] | None:
+                               made: list[TangentReplay], beside=None) -> Callable[[dict[str, float]], SimTrace] | None:
     """The calibration's secant step made with the tangents of the fit's first joint replay
     (:func:`sysid.calibration_secant.secant_calibration` ``last``), kept in ``made`` for :func:`sysid.fit.fit`.
 
@@ -457,6 +475,11 @@ def _secant_step_with_tangents(model: ObservationModel, options: FitOptions, cal
     replay) where the fit would not take it: the stick speed not fitted, warm replays, no sensitivity Jacobian.
     The columns are :func:`sysid.fit.joint_tangent_names` of the fit's parameters with the stage's; a fit that ends
     up asking for others (the stage not accepted, a tack layer's nuisance) replays as before.
+
+    With ``beside`` (the calibration's probe process, where the gel's law is compared at the fit's start) the other
+    law's start replay with tangents is asked of it before this replay (:func:`sysid.gel_law.ask_beside`), at the
+    values the comparison starts from where the stage takes this step: the two replays are made side by side, and
+    :func:`sysid.gel_law.choose_at_start` takes the other law's only where it is the replay it would make.
     """
     if not options.fit_eps_v or options.warm_start:
         return None
@@ -465,8 +488,11 @@ def _secant_step_with_tangents(model: ObservationModel, options: FitOptions, cal
     stage = [n for n in SECANT_PARAMETERS if n not in calibrated and n not in options.params]
 
     def replay(values: dict[str, float]) -> SimTrace:
-        names = joint_tangent_names([*options.params, *stage], nuisance_of(model, options), robust=options.robust,
-                                    warm_start=options.warm_start)
+        fitted, nuisance = [*options.params, *stage], nuisance_of(model, options)
+        names = joint_tangent_names(fitted, nuisance, robust=options.robust, warm_start=options.warm_start)
+        if beside is not None:  # the fit's start where the stage takes this step: the scene's values and this step's
+            ask_beside(beside, other_law(model), model, fitted, {}, _law_extra(fitted, nuisance, options),
+                       parameters={**model_parameters(model), **values})
         made.clear()
         try:
             replayed, trace = TangentReplay.make(model, values, names)

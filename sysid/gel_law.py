@@ -287,23 +287,10 @@ def law_step(model: ObservationModel, names: Sequence[str], start: Mapping[str, 
     Raises:
         CalibrationError: the replay diverged at the start.
     """
-    specs = [parameter_spec(n, float(start[n]) if n in start else model.parameter_value(n)) for n in names]
-    extra_specs = [parameter_spec(n, model.parameter_value(n)) for n in extra]
-    provider = make_jacobian("auto")
-    problem = FitProblem(model, specs, joint=getattr(provider, "joint", None), extra=extra_specs)
-    u = np.zeros(len(specs))
-    own, kept = tangent_columns(names, extra)  # the columns the joint replay asks
-    tangent_names = [*own, *kept]
-    if problem.joint is not None and (made is None or not made.matches(model, problem.values(u), tangent_names)):
-        try:
-            made = TangentReplay.make(model, problem.values(u), tangent_names)[0]
-        except ConfigError:  # not differentiable (a step with dt halved): the provider's own columns below
-            made = None
-        except SimulationDivergedError as err:
-            raise CalibrationError(f"the replay diverged at the start values {problem.values(u)}: {err} "
-                                   "(try a smaller --dt)") from err
-    problem.made = made
+    problem, provider, tangent_names = _step_problem(model, names, start, extra)
+    u = np.zeros(len(names))
     try:
+        made = problem.made = _start_made(model, problem, tangent_names, made)
         r = problem.residual(u, phase="initial")
         if r is None:
             raise CalibrationError(f"the replay diverged at the start values {problem.values(u)}: "
@@ -330,6 +317,112 @@ def law_step(model: ObservationModel, names: Sequence[str], start: Mapping[str, 
     return LawStep(values={names[i]: problem.values(u)[names[i]] for i in cols}, start_cost=float(r[rows] @ r[rows]),
                    residual=residual, gains={} if found is None else {k: float(v) for k, v in found[1].items()},
                    made=made)
+
+
+def _step_problem(model: ObservationModel, names: Sequence[str], start: Mapping[str, float], extra: Sequence[str]
+                  ) -> tuple[FitProblem, Any, list[str]]:
+    """``(problem, provider, tangent names)`` of :func:`law_step` of ``model``'s ``names`` from ``start`` (a missing
+    name: the model's value) with ``extra`` held at their nominal: its :class:`sysid.fit.FitProblem` (close it), its
+    Jacobian provider and the columns its joint replay asks (:func:`sysid.jacobians.tangent_columns`)."""
+    specs = [parameter_spec(n, float(start[n]) if n in start else model.parameter_value(n)) for n in names]
+    extra_specs = [parameter_spec(n, model.parameter_value(n)) for n in extra]
+    provider = make_jacobian("auto")
+    own, kept = tangent_columns(names, extra)
+    return FitProblem(model, specs, joint=getattr(provider, "joint", None), extra=extra_specs), provider, [*own, *kept]
+
+
+def _start_made(model: ObservationModel, problem: FitProblem, tangent_names: Sequence[str],
+                made: TangentReplay | None) -> TangentReplay | None:
+    """The cold replay with the tangents ``tangent_names`` at ``problem``'s start: ``made`` where it is that replay
+    (:meth:`sysid.jacobians.TangentReplay.matches`), else one made here; ``made`` as given where the problem has no
+    joint replay, None where the replay cannot carry tangents (a step with dt halved: the provider's own columns).
+
+    Raises:
+        CalibrationError: the replay diverged at the start.
+    """
+    values = problem.values(np.zeros(len(problem.specs)))
+    if problem.joint is None or (made is not None and made.matches(model, values, tangent_names)):
+        return made
+    try:
+        return TangentReplay.make(model, values, tangent_names)[0]
+    except ConfigError:  # not differentiable (a step with dt halved): the provider's own columns
+        return None
+    except SimulationDivergedError as err:
+        raise CalibrationError(f"the replay diverged at the start values {values}: {err} (try a smaller --dt)") from err
+
+
+@dataclass(frozen=True)
+class BesideReplay:
+    """A law's :func:`law_step` start replay with tangents made in the calibration's probe process
+    (:func:`replay_beside`), with what it was made of.
+
+    Attributes:
+        law: the gel law replayed (``simulation.gel_element``).
+        parameters: every parameter's nominal value of the model that replayed it (:func:`model_parameters`), SI.
+        drive: that model's ``(drive_stiffness, drive_damping)``.
+        made: the replay, or None where it could not carry tangents.
+    """
+
+    law: str
+    parameters: dict[str, float]
+    drive: tuple[float, float]
+    made: TangentReplay | None
+
+    def taken(self, law: str, model: ObservationModel) -> TangentReplay | None:
+        """:attr:`made` where it is ``model``'s replay of ``law``: the same law, drive and every nominal value bitwise
+        (:meth:`sysid.jacobians.TangentReplay.matches` then checks the replayed values and columns), else None."""
+        same = (self.law == law and self.drive == (float(model.drive_stiffness), float(model.drive_damping))
+                and self.parameters == model_parameters(model))
+        return self.made if same else None
+
+
+def model_parameters(model: ObservationModel) -> dict[str, float]:
+    """Every simulation parameter's nominal value of ``model`` and its sensor offsets, name -> SI value."""
+    return {**{n: float(model.parameter_value(n)) for n in model.simulation().parameter_names},
+            **dict.fromkeys(SENSOR_PARAMETERS, float(model.nominal_normal_offset))}
+
+
+def replay_beside(model: ObservationModel, cache: dict, law: str, parameters: Mapping[str, float],
+                  drive: tuple[float, float], names: Sequence[str], start: Mapping[str, float],
+                  extra: Sequence[str]) -> BesideReplay:
+    """In the calibration's probe process (:meth:`sysid.diagnose.probe_worker.ProbeWorker.call`; ``model`` its copy
+    of the scene's law's model, ``cache`` its dict): the start replay with tangents that :func:`law_step` of ``names``
+    from ``start`` with ``extra`` makes on a model of ``law`` with the nominal values ``parameters`` and ``drive``
+    (:func:`_with_law`, built once per law and kept in ``cache``).
+
+    Raises:
+        CalibrationError: the replay diverged (the parent then replays it and meets the same).
+    """
+    other = cache.get(("gel_law", law))
+    if other is None:
+        other = cache[("gel_law", law)] = _with_law(model, law)
+    other.reset_nominal()
+    other.set_nominal({n: v for n, v in parameters.items() if v != other.parameter_value(n)})
+    other.set_drive_stiffness(*drive)
+    problem, _, tangent_names = _step_problem(other, names, start, extra)
+    try:
+        made = _start_made(other, problem, tangent_names, None)
+    finally:
+        problem.close()
+    return BesideReplay(law, model_parameters(other), (float(other.drive_stiffness), float(other.drive_damping)), made)
+
+
+def ask_beside(worker: Any, law: str, model: ObservationModel, names: Sequence[str], start: Mapping[str, float],
+               extra: Sequence[str], parameters: Mapping[str, float] | None = None) -> bool:
+    """Ask the probe process ``worker`` (:class:`sysid.diagnose.probe_worker.ProbeWorker`, or None) for
+    :func:`replay_beside` of ``law`` with ``model``'s drive and nominal values (``parameters``: those instead, e.g.
+    the ones the model will have); the reply is ``worker.collect()``. False where nothing was asked."""
+    if worker is None:
+        return False
+    return worker.call(replay_beside, law, dict(model_parameters(model) if parameters is None else parameters),
+                       (float(model.drive_stiffness), float(model.drive_damping)), list(names), dict(start), list(extra))
+
+
+def collected(worker: Any, law: str, model: ObservationModel) -> TangentReplay | None:
+    """The replay :func:`ask_beside` asked of ``worker`` where it is ``model``'s of ``law``
+    (:meth:`BesideReplay.taken`), else None (the caller replays)."""
+    got = worker.collect() if worker is not None else None
+    return got.taken(law, model) if isinstance(got, BesideReplay) else None
 
 
 def _stepped_raw(model: ObservationModel, made: TangentReplay, values: Mapping[str, float],
@@ -389,7 +482,7 @@ def decide(steps: Mapping[str, LawStep], reference: str, model: ObservationModel
 def restep(choice: GelLawChoice, steps: dict[str, LawStep], models: Mapping[str, ObservationModel],
            names: Sequence[str], rows: np.ndarray, gain_prior: GainPrior | None, *,
            stepped: Sequence[str] = PROFILED, extra: Sequence[str] = (), radius: float = STEP_RADIUS,
-           null_sigmas: float = NULL_SIGMAS) -> GelLawChoice:
+           null_sigmas: float = NULL_SIGMAS, beside: Any = None) -> GelLawChoice:
     """``choice`` made again where the other law's cost is the smaller: each law (its model in ``models``, its
     :func:`law_step` in ``steps``) takes a second step from its first step's end, replayed there with tangents, and
     keeps the smaller of its two predicted ends (its start's replay stays its ``made``, a fit's first).
@@ -402,17 +495,21 @@ def restep(choice: GelLawChoice, steps: dict[str, LawStep], models: Mapping[str,
     and is chosen (docs/benchmarks_log.md, session 57 "49default"). Both laws are stepped again, so that neither is
     compared at a step the other was given beyond it (the gains a law asks, :func:`beyond_prior`, fall as it nears its
     minimum). A law whose replay at its first step's end diverges keeps its first step. Costs a replay with tangents a
-    law where the other law leads. Modifies ``steps`` in place."""
+    law where the other law leads; the two replays do not depend on each other, and with ``beside`` (the calibration's
+    probe process, :class:`sysid.diagnose.probe_worker.ProbeWorker`) the other law's is made there while this process
+    makes the reference law's (:func:`replay_beside`: the same replay). Modifies ``steps`` in place."""
     reference = choice.reference
     other = next(law for law in steps if law != reference)
     if choice.cost[other] >= choice.cost[reference]:
         return choice
+    asked = ask_beside(beside, other, models[other], names, steps[other].values, extra)
     trail = {}
-    for law, model in models.items():
-        first = steps[law]
+    for law in sorted(models, key=lambda name: name == other):  # the reference law's replay here first
+        model, first = models[law], steps[law]
         end = float(first.residual @ first.residual)
+        made = collected(beside, law, model) if asked and law == other else None
         try:
-            again = law_step(model, names, first.values, rows, stepped=stepped, extra=extra, radius=radius)
+            again = law_step(model, names, first.values, rows, stepped=stepped, extra=extra, radius=radius, made=made)
         except CalibrationError:  # the first step's end does not replay: that step stands
             trail[law] = [first.start_cost, end]
             continue
@@ -555,10 +652,23 @@ def auto_not_applicable(tactile: bool, tack: bool, scene_law: str | None, laws: 
     return None
 
 
+def _reference_law(model: ObservationModel, laws: Sequence[str] = GEL_LAWS) -> str:
+    """The law of ``laws`` a comparison at ``model``'s fit start takes as its reference: the scene's law (else the
+    simulator's default) where it is among them, else the first."""
+    scene_law = (model.scene.get("simulation") or {}).get("gel_element", SIMULATION_KEYS["gel_element"])
+    return scene_law if scene_law in laws else laws[0]
+
+
+def other_law(model: ObservationModel, laws: Sequence[str] = GEL_LAWS) -> str:
+    """The law of ``laws`` that :func:`choose_at_start` compares with ``model``'s reference law (:func:`_reference_law`)."""
+    reference = _reference_law(model, laws)
+    return next(law for law in laws if law != reference)
+
+
 def choose_at_start(model: ObservationModel, names: Sequence[str], extra: Sequence[str] = (),
                     made: TangentReplay | None = None, *, laws: Sequence[str] = GEL_LAWS,
                     channels: Sequence[str] = TACTILE, gain_prior: GainPrior = GainPrior(),
-                    step_radius: float = STEP_RADIUS, null_sigmas: float = NULL_SIGMAS
+                    step_radius: float = STEP_RADIUS, null_sigmas: float = NULL_SIGMAS, beside: Any = None
                     ) -> tuple[GelLawChoice, ObservationModel, TangentReplay | None]:
     """The gel law chosen at a fit's start (``thinshell sysid --gel-element auto``): ``model`` replays the scene's law
     (the reference), calibrated (its nominal values, drive, sensor gains and their profile, rows left out); its
@@ -567,6 +677,12 @@ def choose_at_start(model: ObservationModel, names: Sequence[str], extra: Sequen
     and the same nominal values, drive, sensor and rows; it makes the same replay with tangents. Each law takes one
     :func:`law_step` of :data:`PROFILED` on its tangents, and :func:`decide` chooses. Added cost over a fit at the
     scene's law: the other law's replay with tangents (which a fit with that law takes as its first evaluation).
+
+    With ``beside`` (the calibration's probe process, :class:`sysid.diagnose.probe_worker.ProbeWorker`) the other
+    law's start replay is the one asked of it before (:func:`ask_beside`, ``thinshell sysid`` while this process makes
+    the calibration's last replay) where it is this replay (:meth:`BesideReplay.taken`), else asked of it now, beside
+    the reference law's (made here where ``made`` is not it: a calibration that kept the scene's stick speed); so is
+    the other law's second replay in :func:`restep`. The same replays either way: the choice and values are the same.
 
     Returns:
         ``(choice, model, made)``: the choice, the chosen law's model and its start replay with tangents (to hand to
@@ -581,13 +697,14 @@ def choose_at_start(model: ObservationModel, names: Sequence[str], extra: Sequen
     compared, rows = compared_rows(model, channels)
     if not compared:
         raise ValueError(f"choose_at_start: the model replays none of the channels {list(channels)}")
-    scene_law = (model.scene.get("simulation") or {}).get("gel_element", SIMULATION_KEYS["gel_element"])
-    reference = scene_law if scene_law in laws else laws[0]
-    other = next(law for law in laws if law != reference)
+    reference, other = _reference_law(model, laws), other_law(model, laws)
     models = {reference: model, other: _with_law(model, other)}
-    steps = {law: law_step(m, names, {}, rows, extra=extra, made=made if law == reference else None,
-                           radius=step_radius) for law, m in models.items()}
+    first = collected(beside, other, models[other])  # asked while the calibration made its last replay
+    asked = first is None and ask_beside(beside, other, models[other], names, {}, extra)  # beside the reference's
+    steps = {reference: law_step(model, names, {}, rows, extra=extra, made=made, radius=step_radius)}
+    steps[other] = law_step(models[other], names, {}, rows, extra=extra, radius=step_radius,
+                            made=collected(beside, other, models[other]) if asked else first)
     choice = decide(steps, reference, model, compared, gain_prior, null_sigmas)
     choice = restep(choice, steps, models, names, rows, gain_prior, extra=extra, radius=step_radius,
-                    null_sigmas=null_sigmas)
+                    null_sigmas=null_sigmas, beside=beside)
     return choice, models[choice.chosen], steps[choice.chosen].made

@@ -23,6 +23,10 @@ plasticity refit's yield-angle search makes its second replay there while this p
 (:func:`sysid.diagnose.plasticity_refit.fit_yield_angle` ``prefetch``). A request carries the calibration's
 nominal values, the replay's parameters and its start (:class:`~sysid.observation.Resume`); the child sets
 the same nominal values on its copy of the model, so that the replay is the one this process would make.
+A request may also name a function of this package (:meth:`ProbeWorker.call`), called in the child with its copy of the
+model, a dict the child keeps for its life (e.g. a model it built for another gel law) and the request's arguments:
+``thinshell sysid`` makes the other gel law's replays with tangents there while this process makes the scene's law's
+(:func:`sysid.gel_law.replay_beside`).
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import multiprocessing
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from sysid.calibration_secant import (CONTACT_ONSET_PARAMETERS, SECANT_PARAMETERS, FirstReplay, first_probe_values,
                                       resume_before_contact)
@@ -108,19 +112,25 @@ class ProbeWorker:
         the calibration's parameters); with ``kinematic`` the recorded pose imposed (the drive the child holds set
         aside for it, as :func:`sysid.calibration.kinematic_reference` does). False (nothing asked) when the child
         is not :attr:`available`."""
+        return self.call(_replay_request, dict(nominal), dict(params), resume, bool(kinematic))
+
+    def call(self, fn: Callable[..., Any], *args: Any) -> bool:
+        """Ask the child for ``fn(model, cache, *args)`` (``fn`` a module-level function, ``args`` picklable; ``model``
+        the child's copy of the model, ``cache`` a dict the child keeps until closed), its value sent back through
+        :meth:`collect` (None where it raised). False (nothing asked) when the child is not :attr:`available`."""
         if not self.available:
             return False
         try:
-            self._conn.send((dict(nominal), dict(params), resume, bool(kinematic)))
-        except (OSError, ValueError):
+            self._conn.send((fn, args))
+        except (OSError, ValueError, TypeError, AttributeError):  # a closed pipe; an argument that does not pickle
             self.close()
             return False
         self._pending = True
         return True
 
     def collect(self) -> Any:
-        """The submitted replay (a :class:`~sysid.observation.SimTrace` without states; waits for the
-        child), or None when it failed or nothing was submitted (the caller then replays it itself)."""
+        """The submitted replay (a :class:`~sysid.observation.SimTrace` without states) or :meth:`call`'s value (waits
+        for the child), or None when it failed or nothing was submitted (the caller then replays it itself)."""
         if not self._pending:
             return None
         self._pending = False
@@ -177,20 +187,28 @@ def _probe(model, params: tuple[str, ...], names: tuple[str, ...], conn) -> None
 
 
 def _serve(model, conn) -> None:
-    """The child after its probe: replay each request ``(nominal, params, resume, kinematic)`` and send the trace
-    without states (None on failure), until the parent closes its end."""
+    """The child after its probe: for each request ``(fn, args)`` send ``fn(model, cache, *args)`` (None on failure),
+    until the parent closes its end."""
+    cache: dict[str, Any] = {}
     while True:
-        nominal, params, resume, kinematic = conn.recv()
-        out = None
-        stiffness, damping = model.drive_stiffness, model.drive_damping
+        fn, args = conn.recv()
         try:
-            model.reset_nominal()
-            model.set_nominal(nominal)
-            if kinematic:
-                model.set_drive_stiffness(math.inf)
-            out = dataclasses.replace(model.simulate(params, resume=resume), states=None)
+            out = fn(model, cache, *args)
         except Exception:  # noqa: BLE001 -- any failure: the parent replays it itself and reports it there
             out = None
-        finally:
-            model.set_drive_stiffness(stiffness, damping)
         conn.send(out)
+
+
+def _replay_request(model, cache: dict, nominal: Mapping[str, float], params: Mapping[str, float], resume: Any,
+                    kinematic: bool) -> Any:
+    """:meth:`ProbeWorker.submit`'s replay in the child: ``params`` replayed from ``resume`` with ``nominal`` as the
+    model's nominal values, kinematic where asked; the trace without states."""
+    stiffness, damping = model.drive_stiffness, model.drive_damping
+    try:
+        model.reset_nominal()
+        model.set_nominal(nominal)
+        if kinematic:
+            model.set_drive_stiffness(math.inf)
+        return dataclasses.replace(model.simulate(params, resume=resume), states=None)
+    finally:
+        model.set_drive_stiffness(stiffness, damping)

@@ -92,10 +92,14 @@ def test_diagnose_command_makes_the_probe_beside_unless_asked_for_one_process():
 
 def test_sysid_command_makes_the_probe_beside_unless_asked_for_one_process():
     from sysid.cli import build_parser, fit_options
-    from sysid.fit_recording import FitOptions
+    from sysid.fit_recording import FitOptions, available_cores
 
-    assert FitOptions().probe_worker and fit_options(build_parser().parse_args(["bag"])).probe_worker
+    assert FitOptions().probe_worker and fit_options(build_parser().parse_args(["bag", "--workers", "2"])).probe_worker
     assert not fit_options(build_parser().parse_args(["bag", "--one-process"])).probe_worker
+    # --workers defaults to the cores this process may run on; one is one process
+    default = fit_options(build_parser().parse_args(["bag"]))
+    assert default.workers == available_cores() and default.probe_worker == (available_cores() > 1)
+    assert not fit_options(build_parser().parse_args(["bag", "--workers", "1"])).probe_worker
     # none where its replay would not be the secant stage's first: the stick regularisation fitted, no secant
     # replay, a time budget, or a parameter fit that may step
     for params, replays, budget, most in ((("contact.eps_v",), 2, None, 1), ((), 0, None, 1), ((), 2, 10.0, 1),
