@@ -95,7 +95,7 @@ CUDA_GROUP = 4
 """Lanes of one dot product in the left-looking factorisation (``schedule="dots"``) on CUDA: at 256 threads a copy 4
 and 8 tie (27.7 / 27.6 ms), 2 and 16 are slower (32.6 / 34.3; H100, B = 1024, session 52)."""
 
-SCHEDULES = ("pairs", "rows", "dots", "panels")
+SCHEDULES = ("pairs", "rows", "dots", "panels", "blocks")
 """How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""
 
 CUDA_SCHEDULE = "dots"
@@ -678,7 +678,8 @@ class BatchedEnvelope(BatchedPCG):
     ``"mixed"`` refinements read the operator of that factorisation too)."""
 
     def __init__(self, segments: "np.ndarray | None" = None, precision: str = "double", refinements: int = 2,
-                 lanes: int | None = None, schedule: str | None = None, group: int | None = None) -> None:
+                 lanes: int | None = None, schedule: str | None = None, group: int | None = None,
+                 panel: int | None = None) -> None:
         super().__init__(segments, precision="double")  # the operator (for the refinement's residual) in float64
         from sim_core.ti_kernels.precision import storage_dtype
 
@@ -690,6 +691,12 @@ class BatchedEnvelope(BatchedPCG):
             raise ValueError(f"BatchedEnvelope: schedule must be one of {'|'.join(SCHEDULES)}, got {schedule!r}")
         self._schedule = schedule
         self._group = group
+        from sim_core.ti_kernels.envelope_blocks import PANEL
+
+        self.panel = int(panel) if panel is not None else PANEL
+        if self.panel < 1:
+            raise ValueError(f"BatchedEnvelope: panel must be at least 1 column, got {panel}")
+        self._npanels = 0
         if group is not None:
             self.group  # (checked against the lanes now)
         self._pcap = 1
@@ -812,6 +819,13 @@ class BatchedEnvelope(BatchedPCG):
                            self._array("env_pring", 1 if shared else B * pcap),
                            self._array("env_blk", 1 if shared else 8 * B), m, size, B, self._lane_count(), self.group,
                            pcap, shared)
+        elif self.schedule == "blocks":
+            from sim_core.ti_kernels.envelope_blocks import factor_blocks
+
+            shared, lanes, group, shape = self._blocks_launch(self._lane_count())
+            factor_blocks(env, a["env_off"], a["env_first"], a["env_pptr"], a["env_prows"], todo, a["env_flags"],
+                          self._array("env_inv", max(B * m, 1)), self._array("env_blk", 1 if shared else B * shape[2]),
+                          m, size, B, self._npanels, lanes, group, self.panel, shared, *shape)
         elif self.schedule == "dots":
             _factor_dots(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo, a["env_flags"],
                          self._array("env_inv", max(B * m, 1)), m, size, B, self._lane_count(), self.group)
@@ -841,6 +855,13 @@ class BatchedEnvelope(BatchedPCG):
                              f"indices")
         for name, host in (("env_off", off), ("env_first", self._first), ("env_fptr", fptr), ("env_frows", frows)):
             _copy_in(self._array(name, max(host.size, 1), ti.i32), host.astype(np.int32))
+        if self.schedule == "blocks":
+            from sim_core.ti_kernels.envelope_blocks import panel_rows
+
+            pptr, prows = panel_rows(self._first, self.panel)
+            self._npanels = pptr.size - 1
+            for name, host in (("env_pptr", pptr), ("env_prows", prows)):
+                _copy_in(self._array(name, max(host.size, 1), ti.i32), host.astype(np.int32))
         widest = int((np.arange(self._m) - self._first).max()) + 1 if self._m else 1
         self._pcap = 1 << widest.bit_length()  # (the pivots' ring of "panels": a power of two above the widest row)
         padded = np.flatnonzero(self._order.reshape(-1) < 0)  # (none while every copy has the same count)
@@ -872,8 +893,26 @@ class BatchedEnvelope(BatchedPCG):
                 self._substitute_into(r, dx)
                 _add(x, dx, n)
 
+    def _blocks_launch(self, lanes: int) -> tuple:
+        """``(shared, lanes, group, (threads, serial, width))`` of the ``"blocks"`` kernels with ``lanes`` threads a
+        copy: on CUDA a block of them, the dot products' groups of :attr:`group`; elsewhere the lanes one after
+        another in a copy's thread, groups of 1 (no shuffles on the CPU)."""
+        from sim_core.ti_kernels.envelope_blocks import launch_shape
+
+        shared = require_backend("BatchedEnvelope") == "cuda"
+        group = min(self.group, lanes) if shared else 1
+        return shared, lanes, group, launch_shape(lanes, self.panel, shared)
+
     def _substitute_into(self, b, x) -> None:
         a = self._arrays
+        if self.schedule == "blocks":
+            from sim_core.ti_kernels.envelope_blocks import substitute_blocks
+
+            shared, lanes, group, shape = self._blocks_launch(min(self._lane_count(), 32))
+            substitute_blocks(a["env"], a["env_off"], a["env_first"], a["env_todo"], a["env_order"], b, x,
+                              self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
+                              self._copies, self._npanels, lanes, group, self.panel, shared, *shape[:2])
+            return
         by_rows = self.schedule in ("dots", "panels")
         _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"],
                     a["env_order"], b, x, self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
