@@ -98,10 +98,11 @@ and 8 tie (27.7 / 27.6 ms), 2 and 16 are slower (32.6 / 34.3; H100, B = 1024, se
 SCHEDULES = ("pairs", "rows", "dots", "panels", "blocks")
 """How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""
 
-CUDA_SCHEDULE = "dots"
-"""The schedule of a :class:`BatchedEnvelope` given none on CUDA (elsewhere ``"dots"`` too). ``"panels"``' kernels
-are faster (6.4 against 8.1 ms at B = 1024, 2.7 against 3.6 at 256, H100) but the lockstep's steady Forming rate did
-not follow in the one A/B made (1,573 against 1,724 scene-steps/s at B = 1024, session 52): opt-in."""
+CUDA_SCHEDULE = "blocks"
+"""The schedule of a :class:`BatchedEnvelope` given none on CUDA (elsewhere ``"dots"``): panels of columns
+(:mod:`sim_core.ti_kernels.envelope_blocks`), three dependent global-memory passes a panel of ``P`` columns instead of
+a pass a column. ``"panels"``' kernels (a vertex at a time) were faster than ``"dots"``' (6.4 against 8.1 ms at B =
+1024, H100) but the lockstep's steady Forming rate did not follow in the one A/B made (session 52): opt-in."""
 
 
 
