@@ -78,7 +78,7 @@ copy, its contacts inside): 58,926 entries, widest row 411, 0.45 MiB a copy in f
 
 import numpy as np
 
-from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_backend import current_arch, require_backend, ti
 from sim_core.ti_kernels import transfer
 from sim_core.ti_kernels.pcg import BatchedPCG, _apply, _copy_in, _copy_out
 from sim_core.ti_kernels.precision import VALUES, stored
@@ -647,18 +647,23 @@ class BatchedEnvelope(BatchedPCG):
         precision: ``"double"`` (float64 envelope and factor) or ``"mixed"`` (float32 envelope and factor, float64
             iterative refinement).
         refinements: refinement steps a solve with ``precision="mixed"`` (ignored with ``"double"``).
-        lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA, 1 elsewhere.
+        lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA (and where a test emulates CUDA's paths), 1 elsewhere.
         schedule: how a copy's threads share its factorisation: right-looking, a column's update ``"pairs"`` (entry
             by entry) or ``"rows"`` (a thread a row); or left-looking ``"dots"`` (a column's entries as dot products of
             two rows, ``group`` lanes each, and both substitutions by rows, a warp a copy) or ``"panels"`` (a vertex's three
-            columns at once, the same substitutions); None: :data:`CUDA_SCHEDULE` on CUDA, ``"dots"`` elsewhere.
-        group: lanes of one dot product with ``schedule="dots"`` or ``"panels"``, a power of two of at most 32 dividing the lanes;
-            None: :data:`CUDA_GROUP` with several threads a copy (at most the lanes), 1 with one.
+            columns at once, the same substitutions) or ``"blocks"`` (panels of ``panel`` columns, three passes a panel,
+            the substitutions by panels too: :mod:`sim_core.ti_kernels.envelope_blocks`); None: :data:`CUDA_SCHEDULE`
+            on CUDA (and where a test emulates CUDA's paths), ``"dots"`` elsewhere.
+        group: lanes of one dot product with ``schedule="dots"``, ``"panels"`` or ``"blocks"`` (on CUDA), a power of two
+            of at most 32 dividing the lanes; None: :data:`CUDA_GROUP` with several threads a copy (at most the lanes),
+            1 with one.
+        panel: columns a panel with ``schedule="blocks"``, at least 1; None:
+            :data:`~sim_core.ti_kernels.envelope_blocks.PANEL`.
 
     Raises:
         ConfigError: an unknown ``precision``.
-        ValueError: an unknown ``schedule``, or a ``group`` that is not a power of two of at most 32 dividing the
-            lanes.
+        ValueError: an unknown ``schedule``, a ``group`` that is not a power of two of at most 32 dividing the
+            lanes, or a ``panel`` under 1.
 
     Attributes:
         name: ``"envelope"``.
@@ -714,10 +719,10 @@ class BatchedEnvelope(BatchedPCG):
 
     @property
     def schedule(self) -> str:
-        """``"pairs"``, ``"rows"``, ``"dots"`` or ``"panels"`` (the class docstring)."""
+        """``"pairs"``, ``"rows"``, ``"dots"``, ``"panels"`` or ``"blocks"`` (the class docstring)."""
         if self._schedule is not None:
             return self._schedule
-        return CUDA_SCHEDULE if require_backend("BatchedEnvelope") == "cuda" else "dots"
+        return CUDA_SCHEDULE if self._cuda_paths() else "dots"
 
     @property
     def group(self) -> int:
@@ -732,7 +737,15 @@ class BatchedEnvelope(BatchedPCG):
     def _lane_count(self) -> int:
         if self.lanes is not None:
             return int(self.lanes)
-        return CUDA_LANES if require_backend("BatchedEnvelope") == "cuda" else 1
+        return CUDA_LANES if self._cuda_paths() else 1
+
+    @staticmethod
+    def _cuda_paths() -> bool:
+        """Whether the CUDA defaults (schedule, lanes) apply: on CUDA, and on the CPU arch where a test emulates CUDA's
+        paths (``tests/support/emulated_cuda.py``: ``"blocks"``' lanes then run one after another in a copy's thread,
+        :mod:`sim_core.ti_kernels.envelope_blocks`)."""
+        require_backend("BatchedEnvelope")
+        return current_arch() == "cuda"
 
     def factorize(self, upper, blocks=None, diagonal: tuple | None = None, copies=None,
                   keep_bands: bool = False) -> bool:
