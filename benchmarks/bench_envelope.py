@@ -38,6 +38,9 @@ def main() -> int:
                     help="lanes of a dot product with the dots schedule, comma-separated (default: the solver's)")
     ap.add_argument("--panels", default="",
                     help="columns a panel with the blocks schedule, comma-separated (default: the solver's)")
+    ap.add_argument("--blocks", default="",
+                    help="the blocks schedule's variants as PANEL:LANES pairs, comma-separated, in this order (in place "
+                         "of --panels x --lanes)")
     ap.add_argument("--cg", action=argparse.BooleanOptionalAction, default=True,
                     help="time the batched CG first (as the lockstep makes it)")
     ap.add_argument("--mixed", action=argparse.BooleanOptionalAction, default=True,
@@ -91,6 +94,10 @@ def main() -> int:
                 if group is None or (group <= lanes and lanes % group == 0)] + (
         [(lanes_list[0], "mixed", schedules[0], groups[0] if schedules[0] in left else None, panels[0])]
         if args.mixed else [])
+    if args.blocks:
+        pairs = [tuple(int(v) for v in pair.split(":")) for pair in args.blocks.split(",")]
+        variants = [v for v in variants if v[2] != "blocks"] + [(lanes, "double", "blocks", group, panel)
+                                                              for panel, lanes in pairs for group in groups]
     for lanes, precision, schedule, group, panel in variants:
         if lanes == 1 and schedule not in (schedules[0], *left):
             continue  # (one thread a copy: the same work for the right-looking schedules)
@@ -111,7 +118,8 @@ def main() -> int:
         xs = env.solve(b)
         bytes_a_copy = env.entries * (4 if precision == "mixed" else 8)
         report({"solver": "envelope", "precision": precision, "lanes": lanes, "schedule": schedule,
-                "group": env.group if schedule in left else None,
+                "group": (env._blocks_launch(lanes)[2] if schedule == "blocks" else env.group) if schedule in left
+                else None,
                 **({"panel": env.panel, "steps": dependent_steps(env._m, env.panel)} if schedule == "blocks" else {}),
                 "factorize_ms": factor_ms, "eliminate_ms": eliminate_ms,
                 "solve_ms": solve_ms, "first_call_s": first_s, "entries": env.entries, "m": env._m,

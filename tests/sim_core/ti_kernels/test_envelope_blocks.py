@@ -1,0 +1,86 @@
+"""The envelope Cholesky by panels of columns (sim_core.ti_kernels.envelope_blocks, ``BatchedEnvelope(schedule=
+"blocks")``): each panel's rows listed as the elimination needs them; each copy's factor equal to a dense Cholesky of
+its matrix in the envelope's order to 1e-10 relative and its solve to SciPy's, with panels that do and do not divide
+the order and a CUDA block's lanes run one after another on the CPU (where a test emulates CUDA's paths, the solver's
+default there). The schedules' shared cases (widening, indefinite and diverged copies, copies left out, float32
+factors): ``test_envelope_cholesky.py``; a lockstep Forming batch on CUDA's emulated paths through it:
+``test_friction_device_rows.py``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from tests.sim_core.ti_kernels.test_envelope_cholesky import _grid_block, _upper
+from tests.support.emulated_cuda import emulate_cuda
+
+
+def test_each_panels_rows_are_its_own_then_those_of_later_panels_reaching_it():
+    from sim_core.ti_kernels.envelope_blocks import panel_rows
+
+    rng = np.random.default_rng(3)
+    m = 61
+    first = np.array([rng.integers(max(0, i - 9), i + 1) for i in range(m)])
+    first[[30, 47, 60]] = [2, 0, 41]  # a few long rows (contact couplings)
+    for panel in (1, 3, 7, 12, 61, 64):
+        pptr, prows = panel_rows(first, panel)
+        assert pptr.size - 1 == -(-m // panel)
+        for p in range(pptr.size - 1):
+            j0, j1 = p * panel, min((p + 1) * panel, m)
+            want = list(range(j0, j1)) + [i for i in range(j1, m) if first[i] < j1]
+            assert prows[pptr[p]:pptr[p + 1]].tolist() == want
+
+
+def _dense_factor(solver, copy: int) -> np.ndarray:
+    """Copy ``copy``'s Cholesky factor ``L = W D^-1/2`` from the solver's envelope (positions in its order)."""
+    from sim_core.ti_kernels.envelope_cholesky import envelope_rows
+
+    first = solver._first
+    off = envelope_rows(first)[0]
+    env = solver._arrays["env"].to_numpy()[copy * solver.entries:(copy + 1) * solver.entries]
+    W = np.zeros((first.size, first.size))
+    for i in range(first.size):
+        W[i, first[i]:i + 1] = env[off[i]:off[i + 1]]
+    return W / np.sqrt(np.diag(W))[None, :]
+
+
+@pytest.mark.parametrize("lanes, panel", [(1, 5), (3, 4), (2, 1)])
+def test_factors_equal_a_dense_cholesky_and_solves_scipys(ti_cpu, lanes, panel):
+    """Panels of 5 and 4 columns (the order, 3 x 28 = 84, not a multiple) and of 1; one, three and two lanes a copy
+    (CUDA's sharing of a panel's rows, block and front; run in turn here)."""
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+    blocks = [_grid_block(7, 4, seed, shift) for seed, shift in ((41, 1e-3), (42, 1.0), (43, 10.0))]
+    A = sp.block_diag(blocks, format="csr")
+    m = blocks[0].shape[0]
+    solver = BatchedEnvelope(np.repeat(np.arange(3), m), schedule="blocks", lanes=lanes, panel=panel)
+    assert solver.factorize(_upper(A))
+    b = np.random.default_rng(6).normal(size=3 * m)
+    x = solver.solve(b)
+    assert not solver.indefinite.any()
+    for c, block in enumerate(blocks):
+        order = solver._order[c] - c * m
+        L = np.linalg.cholesky(block.toarray()[np.ix_(order, order)])
+        assert np.abs(_dense_factor(solver, c) - L).max() <= 1e-10 * np.abs(L).max()
+    want = spla.spsolve(A.tocsc(), b)
+    assert np.abs(x - want).max() <= 1e-10 * np.abs(want).max()
+
+
+def test_cudas_emulated_paths_take_the_blocks_with_a_cuda_blocks_lanes(ti_cpu, monkeypatch):
+    """Where a test emulates CUDA's paths the solver takes CUDA's defaults (``"blocks"``, :data:`CUDA_LANES` lanes,
+    run in turn in a copy's thread) and still solves each copy exactly."""
+    from sim_core.ti_kernels import envelope_cholesky
+
+    blocks = [_grid_block(5, 4, seed, 1.0) for seed in (51, 52)]
+    A = sp.block_diag(blocks, format="csr")
+    m = blocks[0].shape[0]
+    emulate_cuda(monkeypatch)
+    solver = envelope_cholesky.BatchedEnvelope(np.repeat(np.arange(2), m), panel=5)
+    assert solver.schedule == "blocks" == envelope_cholesky.CUDA_SCHEDULE
+    assert solver._lane_count() == envelope_cholesky.CUDA_LANES
+    solver.factorize(_upper(A))
+    b = np.random.default_rng(7).normal(size=2 * m)
+    want = spla.spsolve(A.tocsc(), b)
+    assert np.abs(solver.solve(b) - want).max() <= 1e-10 * np.abs(want).max()
