@@ -78,7 +78,7 @@ copy, its contacts inside): 58,926 entries, widest row 411, 0.45 MiB a copy in f
 
 import numpy as np
 
-from sim_core.ti_backend import current_arch, require_backend, ti
+from sim_core.ti_backend import require_backend, ti
 from sim_core.ti_kernels import transfer
 from sim_core.ti_kernels.pcg import BatchedPCG, _apply, _copy_in, _copy_out
 from sim_core.ti_kernels.precision import VALUES, stored
@@ -98,11 +98,17 @@ and 8 tie (27.7 / 27.6 ms), 2 and 16 are slower (32.6 / 34.3; H100, B = 1024, se
 SCHEDULES = ("pairs", "rows", "dots", "panels", "blocks")
 """How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""
 
-CUDA_SCHEDULE = "blocks"
-"""The schedule of a :class:`BatchedEnvelope` given none on CUDA (elsewhere ``"dots"``): panels of columns
-(:mod:`sim_core.ti_kernels.envelope_blocks`), three dependent global-memory passes a panel of ``P`` columns instead of
-a pass a column. ``"panels"``' kernels (a vertex at a time) were faster than ``"dots"``' (6.4 against 8.1 ms at B =
-1024, H100) but the lockstep's steady Forming rate did not follow in the one A/B made (session 52): opt-in."""
+CUDA_SCHEDULE = "dots"
+"""The schedule of a :class:`BatchedEnvelope` given none on CUDA. ``"panels"``' kernels are faster (6.4 against 8.1 ms
+at B = 1024, 2.7 against 3.6 at 256, H100) but the lockstep's steady Forming rate did not follow in the one A/B made
+(1,573 against 1,724 scene-steps/s at B = 1024, session 52): opt-in. ``"blocks"`` (panels of columns,
+:mod:`sim_core.ti_kernels.envelope_blocks`) has not run on a GPU yet (session 58's one call timed out compiling before
+its first figure): opt-in there until ``out/s58-52env/ab.sh`` (main's tree) measures it."""
+
+SCHEDULE = "blocks"
+"""The schedule of a :class:`BatchedEnvelope` given none elsewhere than on CUDA (one thread a copy): panels of
+columns, each envelope row read once a panel instead of once a column (VM, Forming B = 8, session 58: figures in
+docs/gpu_roofline.md, "The envelope by panels of columns")."""
 
 
 
@@ -647,13 +653,14 @@ class BatchedEnvelope(BatchedPCG):
         precision: ``"double"`` (float64 envelope and factor) or ``"mixed"`` (float32 envelope and factor, float64
             iterative refinement).
         refinements: refinement steps a solve with ``precision="mixed"`` (ignored with ``"double"``).
-        lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA (and where a test emulates CUDA's paths), 1 elsewhere.
+        lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA, 1 elsewhere (where ``"blocks"`` runs more, they run one
+            after another in a copy's thread: :mod:`sim_core.ti_kernels.envelope_blocks`).
         schedule: how a copy's threads share its factorisation: right-looking, a column's update ``"pairs"`` (entry
             by entry) or ``"rows"`` (a thread a row); or left-looking ``"dots"`` (a column's entries as dot products of
             two rows, ``group`` lanes each, and both substitutions by rows, a warp a copy) or ``"panels"`` (a vertex's three
             columns at once, the same substitutions) or ``"blocks"`` (panels of ``panel`` columns, three passes a panel,
             the substitutions by panels too: :mod:`sim_core.ti_kernels.envelope_blocks`); None: :data:`CUDA_SCHEDULE`
-            on CUDA (and where a test emulates CUDA's paths), ``"dots"`` elsewhere.
+            on CUDA, :data:`SCHEDULE` elsewhere.
         group: lanes of one dot product with ``schedule="dots"``, ``"panels"`` or ``"blocks"`` (on CUDA), a power of two
             of at most 32 dividing the lanes; None: :data:`CUDA_GROUP` with several threads a copy (at most the lanes),
             1 with one.
@@ -722,7 +729,7 @@ class BatchedEnvelope(BatchedPCG):
         """``"pairs"``, ``"rows"``, ``"dots"``, ``"panels"`` or ``"blocks"`` (the class docstring)."""
         if self._schedule is not None:
             return self._schedule
-        return CUDA_SCHEDULE if self._cuda_paths() else "dots"
+        return CUDA_SCHEDULE if require_backend("BatchedEnvelope") == "cuda" else SCHEDULE
 
     @property
     def group(self) -> int:
@@ -737,15 +744,7 @@ class BatchedEnvelope(BatchedPCG):
     def _lane_count(self) -> int:
         if self.lanes is not None:
             return int(self.lanes)
-        return CUDA_LANES if self._cuda_paths() else 1
-
-    @staticmethod
-    def _cuda_paths() -> bool:
-        """Whether the CUDA defaults (schedule, lanes) apply: on CUDA, and on the CPU arch where a test emulates CUDA's
-        paths (``tests/support/emulated_cuda.py``: ``"blocks"``' lanes then run one after another in a copy's thread,
-        :mod:`sim_core.ti_kernels.envelope_blocks`)."""
-        require_backend("BatchedEnvelope")
-        return current_arch() == "cuda"
+        return CUDA_LANES if require_backend("BatchedEnvelope") == "cuda" else 1
 
     def factorize(self, upper, blocks=None, diagonal: tuple | None = None, copies=None,
                   keep_bands: bool = False) -> bool:

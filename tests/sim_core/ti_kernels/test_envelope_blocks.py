@@ -1,9 +1,9 @@
 """The envelope Cholesky by panels of columns (sim_core.ti_kernels.envelope_blocks, ``BatchedEnvelope(schedule=
 "blocks")``): each panel's rows listed as the elimination needs them; each copy's factor equal to a dense Cholesky of
 its matrix in the envelope's order to 1e-10 relative and its solve to SciPy's, with panels that do and do not divide
-the order and a CUDA block's lanes run one after another on the CPU (where a test emulates CUDA's paths, the solver's
-default there). The schedules' shared cases (widening, indefinite and diverged copies, copies left out, float32
-factors): ``test_envelope_cholesky.py``; a lockstep Forming batch on CUDA's emulated paths through it:
+the order and a CUDA block's lanes run one after another on the CPU. The schedules' shared cases (widening,
+indefinite and diverged copies, copies left out, float32 factors): ``test_envelope_cholesky.py``; lockstep batches
+through it (the CPU arch's default schedule): ``tests/sim_core/batch/test_lockstep.py``'s envelope cases and
 ``test_friction_device_rows.py``."""
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from tests.sim_core.ti_kernels.test_envelope_cholesky import _grid_block, _upper
-from tests.support.emulated_cuda import emulate_cuda
 
 
 def test_each_panels_rows_are_its_own_then_those_of_later_panels_reaching_it():
@@ -68,18 +67,19 @@ def test_factors_equal_a_dense_cholesky_and_solves_scipys(ti_cpu, lanes, panel):
     assert np.abs(x - want).max() <= 1e-10 * np.abs(want).max()
 
 
-def test_cudas_emulated_paths_take_the_blocks_with_a_cuda_blocks_lanes(ti_cpu, monkeypatch):
-    """Where a test emulates CUDA's paths the solver takes CUDA's defaults (``"blocks"``, :data:`CUDA_LANES` lanes,
-    run in turn in a copy's thread) and still solves each copy exactly."""
+def test_a_cuda_blocks_lanes_run_in_turn_on_the_cpu_solve_exactly_and_blocks_is_the_cpus_default(ti_cpu):
+    """:data:`CUDA_LANES` lanes a copy (CUDA's sharing of each panel's rows, block and front, and the substitutions'
+    rows and columns; one after another in a copy's thread here) give each copy's exact solution; with no schedule given
+    the CPU arch takes the panels (one thread a copy)."""
     from sim_core.ti_kernels import envelope_cholesky
 
     blocks = [_grid_block(5, 4, seed, 1.0) for seed in (51, 52)]
     A = sp.block_diag(blocks, format="csr")
     m = blocks[0].shape[0]
-    emulate_cuda(monkeypatch)
-    solver = envelope_cholesky.BatchedEnvelope(np.repeat(np.arange(2), m), panel=5)
-    assert solver.schedule == "blocks" == envelope_cholesky.CUDA_SCHEDULE
-    assert solver._lane_count() == envelope_cholesky.CUDA_LANES
+    segments = np.repeat(np.arange(2), m)
+    assert envelope_cholesky.BatchedEnvelope(segments).schedule == "blocks" == envelope_cholesky.SCHEDULE
+    solver = envelope_cholesky.BatchedEnvelope(segments, schedule="blocks", lanes=envelope_cholesky.CUDA_LANES,
+                                               panel=5)
     solver.factorize(_upper(A))
     b = np.random.default_rng(7).normal(size=2 * m)
     want = spla.spsolve(A.tocsc(), b)
