@@ -40,7 +40,7 @@ block and its pivots' inverses in a scratch array of ``(B (P^2 + P),)`` float64 
 import numpy as np
 
 from sim_core.ti_backend import ti
-from sim_core.ti_kernels.envelope_cholesky import _F64, _I32, _group_sum, _pivot
+from sim_core.ti_kernels.envelope_cholesky import _F64, _I32, _gather_rhs, _group_sum, _pivot, _row_dot
 from sim_core.ti_kernels.precision import VALUES, stored
 
 PANEL = 12
@@ -142,17 +142,27 @@ def _outer(env: ti.template(), inv: ti.template(), off: ti.template(), first: ti
 
 
 @ti.func
+def _triangle_entry(e, j0, pc, first: ti.template(), panel: ti.template()):
+    """Entry ``e`` of the panel's ``P x P`` block: ``(a, b, i, lower, inside)``, its row ``a`` and column ``b`` in the
+    panel, ``i = j0 + a``, whether it is in the panel's lower triangle (``b <= a < pc``) and, then, in row ``i``'s
+    envelope."""
+    a = e // panel
+    b = e % panel
+    lower = a < pc and b <= a
+    i = j0 + ti.min(a, pc - 1)
+    return a, b, i, lower, lower and j0 + b >= first[i]
+
+
+@ti.func
 def _load_block(env: ti.template(), off: ti.template(), first: ti.template(), blk: ti.template(), bb, base, j0, pc,
                 lane, lanes: ti.template(), panel: ti.template()):
     """The panel's lower triangle ``t`` (pass 1's) into ``blk[bb + a P + b]`` (0 outside the envelope)."""
     e = lane
     while e < panel * panel:
-        a = e // panel
-        b = e % panel
-        if a < pc and b <= a:
-            i = j0 + a
+        a, b, i, lower, inside = _triangle_entry(e, j0, pc, first, panel)
+        if lower:
             v = 0.0
-            if j0 + b >= first[i]:
+            if inside:
                 v = ti.cast(env[base + off[i] - first[i] + j0 + b], ti.f64)
             blk[bb + e] = v
         e += lanes
@@ -187,16 +197,13 @@ def _finish(env: ti.template(), inv: ti.template(), off: ti.template(), first: t
     nrows = pptr[p + 1] - start
     e = lane
     while e < panel * panel:
-        a = e // panel
-        b = e % panel
-        if a < pc and b <= a:
-            i = j0 + a
-            if j0 + b >= first[i]:
-                env[base + off[i] - first[i] + j0 + b] = stored(blk[bb + e], env)
-            if a == b:
-                inv[vb + i] = blk[bb + panel * panel + a]
-                if not blk[bb + e] > 0.0:
-                    bad[c] = 1
+        a, b, i, lower, inside = _triangle_entry(e, j0, pc, first, panel)
+        if inside:
+            env[base + off[i] - first[i] + j0 + b] = stored(blk[bb + e], env)
+        if lower and a == b:
+            inv[vb + i] = blk[bb + panel * panel + a]
+            if not blk[bb + e] > 0.0:
+                bad[c] = 1
         e += lanes
     task = pc + lane
     while task < nrows:
@@ -275,13 +282,7 @@ def _forward_outer(env: ti.template(), off: ti.template(), first: ti.template(),
     while task < pc:
         i = j0 + task
         fi = first[i]
-        row = base + off[i] - fi
-        acc = 0.0
-        k = fi + sub
-        while k < j0:
-            acc += ti.cast(env[row + k], ti.f64) * w[vb + k]
-            k += group
-        acc = _group_sum(acc, lane, group)
+        acc = _group_sum(_row_dot(env, w, base + off[i] - fi, vb, fi + sub, j0, group), lane, group)
         if sub == 0:
             w[vb + i] -= acc
         task += lanes // group
@@ -355,15 +356,7 @@ def _substitute_copy(env: ti.template(), off: ti.template(), first: ti.template(
     base = c * size
     vb = c * m
     for e in range(serial):
-        p = lane0 + e
-        while p < m:
-            dof = order[vb + p]
-            w[vb + p] = 0.0
-            if dof >= 0:
-                if todo[c] != 0:
-                    w[vb + p] = b[dof]
-                x[dof] = 0.0
-            p += lanes
+        _gather_rhs(order, todo, b, x, w, c, vb, m, lane0 + e, lanes)
     _sync(lanes, shared)
     if todo[c] != 0:
         for p in range(npanels):

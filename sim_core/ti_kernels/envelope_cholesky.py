@@ -497,6 +497,33 @@ def _back_substitute(env: ti.template(), off: ti.template(), first: ti.template(
             ti.simt.block.sync()
 
 
+@ti.func
+def _row_dot(env: ti.template(), w: ti.template(), row, vb, k, stop, stride):
+    """``sum w_ik w[vb + k]`` over ``k`` from ``k`` to ``stop - 1`` by ``stride`` (a lane's share of a row's sum; the
+    row's column ``k`` at ``env[row + k]``)."""
+    acc = 0.0
+    while k < stop:
+        acc += ti.cast(env[row + k], ti.f64) * w[vb + k]
+        k += stride
+    return acc
+
+
+@ti.func
+def _gather_rhs(order: ti.template(), todo: ti.template(), b: ti.template(), x: ti.template(), w: ti.template(), c, vb,
+                m, lane, lanes):
+    """A lane's share of copy ``c``'s right-hand side into ``w[vb:vb + m]`` in the envelope's order (0 where the copy
+    is not factorised, ``todo[c] == 0``, or a position is padding) and its solution ``x`` zeroed."""
+    p = lane
+    while p < m:
+        dof = order[vb + p]
+        w[vb + p] = 0.0
+        if dof >= 0:
+            if todo[c] != 0:
+                w[vb + p] = b[dof]
+            x[dof] = 0.0
+        p += lanes
+
+
 @ti.kernel
 def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, order: _I32, b: _F64,
                 x: _F64, w: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template(),
@@ -513,15 +540,7 @@ def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, to
         lane = t % lanes
         base = c * size
         vb = c * m
-        p = lane
-        while p < m:
-            dof = order[vb + p]
-            w[vb + p] = 0.0
-            if dof >= 0:
-                if todo[c] != 0:
-                    w[vb + p] = b[dof]
-                x[dof] = 0.0
-            p += lanes
+        _gather_rhs(order, todo, b, x, w, c, vb, m, lane, lanes)
         if ti.static(lanes > 1):
             ti.simt.block.sync()
         if todo[c] != 0:
@@ -529,12 +548,7 @@ def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, to
                 for i in range(m):
                     fi = first[i]
                     row = base + off[i] - fi
-                    acc = 0.0
-                    k = fi + lane
-                    while k < i:
-                        acc += ti.cast(env[row + k], ti.f64) * w[vb + k]
-                        k += lanes
-                    acc = _group_sum(acc, lane, lanes)
+                    acc = _group_sum(_row_dot(env, w, row, vb, fi + lane, i, lanes), lane, lanes)
                     if lane == 0:
                         w[vb + i] = (w[vb + i] - acc) / _pivot(env[row + i])
                     if ti.static(lanes > 1):
