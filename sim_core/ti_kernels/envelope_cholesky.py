@@ -25,10 +25,10 @@ multiply-adds a factorisation (``benchmarks/roofline.py``).
 Factorisation. Kept unscaled, ``A = W D^-1 W^T`` with ``W`` lower triangular, ``W_jj = d_j`` (the pivots; ``L = W
 D^-1/2`` is the Cholesky factor, Golub & Van Loan, Matrix Computations, 4th ed., Sec. 4.2), ``lanes`` threads a copy
 (one CUDA thread block, a block-level synchronisation a column), a copy ``m`` synchronised passes; on the CPU one
-thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Three orders of the same arithmetic
+thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Four orders of the same arithmetic
 (``schedule``):
 
-- ``"dots"`` (the default), left-looking by columns (George & Liu, Sec. 4.2's inner-product form): column ``j``'s
+- ``"dots"`` (the default on CUDA, :data:`CUDA_SCHEDULE`), left-looking by columns (George & Liu, Sec. 4.2's inner-product form): column ``j``'s
   entries ``w_ij = a_ij - sum_k w_ik w_jk / d_k`` (``i = j`` and the rows of ``j``'s front, ``k`` from ``max(first[i],
   first[j])`` to ``j - 1``) are dot products of two contiguous segments of envelope rows, independent of each other;
   ``group`` lanes of a warp take one (``group`` consecutive ``k`` a pass, two sums in flight, then a shuffle sum), the
@@ -43,6 +43,12 @@ thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Thre
   operations in every thread) and finishes its row's three entries. The pivots' inverses in a ring of shared memory
   (a power of two above the widest row: 512 float64 for Forming); on the CPU the same arithmetic with both in
   scratch arrays.
+- ``"blocks"`` (session 58; the CPU arch's default, :data:`SCHEDULE`), left-looking by panels of ``panel`` columns
+  (:mod:`sim_core.ti_kernels.envelope_blocks`): a panel in three passes through global memory (its and its front's
+  rows' dot products over the earlier columns, ``P`` sums a row in one pass; the panel's triangle factorised in the
+  block's shared memory; the front's rows finished against it) instead of one a column, both substitutions in two
+  passes a panel; a Forming factorisation 426 dependent passes at ``P = 12`` against ``"dots"``' 1,698, a solve 570
+  against 3,397. On the CPU a copy's lanes run one after another in its thread (CI checks the lanes' sharing there).
 - ``"pairs"`` / ``"rows"`` (session 51), right-looking (outer-product) elimination: column ``j``'s update ``a_ik -=
   a_ij a_kj / d_j`` (``j < k <= i``, rows ``i, k`` in ``j``'s front) shared entry by entry (the pairs listed row by row,
   a lane every ``lanes``-th) or a thread a row; every update a read-modify-write of the envelope.

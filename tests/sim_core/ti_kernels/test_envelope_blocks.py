@@ -78,6 +78,8 @@ def test_a_cuda_blocks_lanes_run_in_turn_on_the_cpu_solve_exactly_and_blocks_is_
     m = blocks[0].shape[0]
     segments = np.repeat(np.arange(2), m)
     assert envelope_cholesky.BatchedEnvelope(segments).schedule == "blocks" == envelope_cholesky.SCHEDULE
+    with pytest.raises(ValueError, match="panel must be at least 1 column, got 0"):
+        envelope_cholesky.BatchedEnvelope(segments, schedule="blocks", panel=0)
     solver = envelope_cholesky.BatchedEnvelope(segments, schedule="blocks", lanes=envelope_cholesky.CUDA_LANES,
                                                panel=5)
     solver.factorize(_upper(A))
