@@ -96,8 +96,9 @@ def main() -> int:
         if args.mixed else [])
     if args.blocks:
         pairs = [tuple(int(v) for v in pair.split(":")) for pair in args.blocks.split(",")]
-        variants = [v for v in variants if v[2] != "blocks"] + [(lanes, "double", "blocks", group, panel)
-                                                              for panel, lanes in pairs for group in groups]
+        variants = [v for v in variants if v[2] != "blocks"] + [
+            (lanes, "double", "blocks", group, panel) for panel, lanes in pairs for group in groups
+            if group is None or (group <= lanes and lanes % group == 0)]
     for lanes, precision, schedule, group, panel in variants:
         if lanes == 1 and schedule not in (schedules[0], *left):
             continue  # (one thread a copy: the same work for the right-looking schedules)
