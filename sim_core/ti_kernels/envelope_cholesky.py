@@ -43,7 +43,7 @@ thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Four
   operations in every thread) and finishes its row's three entries. The pivots' inverses in a ring of shared memory
   (a power of two above the widest row: 512 float64 for Forming); on the CPU the same arithmetic with both in
   scratch arrays.
-- ``"blocks"`` (session 58; the CPU arch's default, :data:`SCHEDULE`), left-looking by panels of ``panel`` columns
+- ``"blocks"`` (session 58; opt-in), left-looking by panels of ``panel`` columns
   (:mod:`sim_core.ti_kernels.envelope_blocks`): a panel in three passes through global memory (its and its front's
   rows' dot products over the earlier columns, ``P`` sums a row in one pass; the panel's triangle factorised in the
   block's shared memory; the front's rows finished against it) instead of one a column, both substitutions in two
@@ -111,10 +111,12 @@ at B = 1024, 2.7 against 3.6 at 256, H100) but the lockstep's steady Forming rat
 :mod:`sim_core.ti_kernels.envelope_blocks`) has not run on a GPU yet (session 58's one call timed out compiling before
 its first figure): opt-in there until ``out/s58-52env/ab.sh`` (main's tree) measures it."""
 
-SCHEDULE = "blocks"
-"""The schedule of a :class:`BatchedEnvelope` given none elsewhere than on CUDA (one thread a copy): panels of
-columns, each envelope row read once a panel instead of once a column (VM, Forming B = 8, session 58: figures in
-docs/gpu_roofline.md, "The envelope by panels of columns")."""
+SCHEDULE = "dots"
+"""The schedule of a :class:`BatchedEnvelope` given none elsewhere than on CUDA (one thread a copy). ``"blocks"``
+factorises a Forming matrix ~1.5x faster there (59 against 91 ms at B = 8 on the VM, session 58) but its kernels'
+unrolled panels take ~120 s to compile into an empty cache against ~17 s (the float64 and float32 kernels, VM under
+load): not worth every CI process's first envelope on the CPU, where the envelope is opt-in
+(docs/gpu_roofline.md, "The envelope by panels of columns")."""
 
 
 

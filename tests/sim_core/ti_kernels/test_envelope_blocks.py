@@ -1,10 +1,9 @@
 """The envelope Cholesky by panels of columns (sim_core.ti_kernels.envelope_blocks, ``BatchedEnvelope(schedule=
 "blocks")``): each panel's rows listed as the elimination needs them; each copy's factor equal to a dense Cholesky of
 its matrix in the envelope's order to 1e-10 relative and its solve to SciPy's, with panels that do and do not divide
-the order and a CUDA block's lanes run one after another on the CPU. The schedules' shared cases (widening,
-indefinite and diverged copies, copies left out, float32 factors): ``test_envelope_cholesky.py``; lockstep batches
-through it (the CPU arch's default schedule): ``tests/sim_core/batch/test_lockstep.py``'s envelope cases and
-``test_friction_device_rows.py``."""
+the order and a CUDA block's lanes run one after another on the CPU; a lockstep batch through it at its copies'
+separate runs' states. The schedules' shared cases (widening, indefinite and diverged copies, copies left out, float32
+factors): ``test_envelope_cholesky.py``."""
 
 from __future__ import annotations
 
@@ -67,17 +66,16 @@ def test_factors_equal_a_dense_cholesky_and_solves_scipys(ti_cpu, lanes, panel):
     assert np.abs(x - want).max() <= 1e-10 * np.abs(want).max()
 
 
-def test_a_cuda_blocks_lanes_run_in_turn_on_the_cpu_solve_exactly_and_blocks_is_the_cpus_default(ti_cpu):
+def test_a_cuda_blocks_lanes_run_in_turn_on_the_cpu_solve_exactly(ti_cpu):
     """:data:`CUDA_LANES` lanes a copy (CUDA's sharing of each panel's rows, block and front, and the substitutions'
-    rows and columns; one after another in a copy's thread here) give each copy's exact solution; with no schedule given
-    the CPU arch takes the panels (one thread a copy)."""
+    rows and columns; one after another in a copy's thread here) give each copy's exact solution; a panel under one
+    column is refused."""
     from sim_core.ti_kernels import envelope_cholesky
 
     blocks = [_grid_block(5, 4, seed, 1.0) for seed in (51, 52)]
     A = sp.block_diag(blocks, format="csr")
     m = blocks[0].shape[0]
     segments = np.repeat(np.arange(2), m)
-    assert envelope_cholesky.BatchedEnvelope(segments).schedule == "blocks" == envelope_cholesky.SCHEDULE
     with pytest.raises(ValueError, match="panel must be at least 1 column, got 0"):
         envelope_cholesky.BatchedEnvelope(segments, schedule="blocks", panel=0)
     solver = envelope_cholesky.BatchedEnvelope(segments, schedule="blocks", lanes=envelope_cholesky.CUDA_LANES,
@@ -86,3 +84,33 @@ def test_a_cuda_blocks_lanes_run_in_turn_on_the_cpu_solve_exactly_and_blocks_is_
     b = np.random.default_rng(7).normal(size=2 * m)
     want = spla.spsolve(A.tocsc(), b)
     assert np.abs(solver.solve(b) - want).max() <= 1e-10 * np.abs(want).max()
+
+
+def test_a_lockstep_batch_solved_by_panels_gives_the_states_of_separate_runs(monkeypatch):
+    """Three pad copies stepped in lockstep (``linear_solver="envelope"`` on the CPU arch) with the envelope by panels
+    (of 4 columns, the solver's default schedule there for this test): each copy's states those of its separate run
+    (host solver) to the Newton tolerance, as ``test_lockstep.py``'s envelope case with ``"dots"``."""
+    from sim_core.batch import BatchedSimulation
+    from sim_core.scenes.task_scene import task_initial_state
+    from sim_core.solver_config import SolverConfig
+    from sim_core.ti_kernels import envelope_blocks, envelope_cholesky
+    from tests.support.batch_copies import MOTIONS, PARAMS, STEPS, control, pad_model, separate_run
+
+    monkeypatch.setattr(envelope_cholesky, "SCHEDULE", "blocks")
+    monkeypatch.setattr(envelope_blocks, "PANEL", 4)
+    model = pad_model()
+    config = SolverConfig(lockstep=True, backend="taichi-cpu", linear_solver="envelope")
+    batch = BatchedSimulation.from_model(model, len(PARAMS), params=PARAMS, state=task_initial_state(model),
+                                         solver_config=config)
+    pose0 = batch.states[0].effector_pose["pad"].copy()
+    states = []
+    for k in range(STEPS):
+        assert batch.step([control(pose0, MOTIONS[i], k) for i in range(len(PARAMS))]).failed_now == []
+        states.append([s.copy() for s in batch.states])
+    solver = batch.lockstep.solver.linear_solver
+    assert (solver.schedule, solver.panel, solver._npanels) == ("blocks", 4, -(-solver._m // 4))
+    tol = SolverConfig().tol_velocity * 0.005  # the Newton tolerance as a displacement per 5 ms step, m
+    for i in range(len(PARAMS)):
+        alone = separate_run(model, PARAMS[i], MOTIONS[i])
+        for k in range(STEPS):
+            assert np.max(np.abs(states[k][i].x - alone[k].x)) <= tol, (i, k)
