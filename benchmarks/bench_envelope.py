@@ -7,11 +7,12 @@ the Newton matrix at the third step's first iterate (projected by ``--projection
 negative gradient on the free DoFs), and prints one JSON line per solver: the CG as the lockstep makes it (its
 factorisation, which builds the sheets' band blocks, and its solve to ``LOCKSTEP_CG_RTOL``, its iterations), then the
 envelope Cholesky (:class:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`) with each ``--lanes`` threads a
-copy in float64 (each ``--schedules``: how a copy's threads share the factorisation; with ``dots``, ``panels`` and
-``blocks`` each ``--groups`` lanes of a dot product; with ``blocks`` each ``--panels`` columns a panel, and its dependent
-steps a factorisation and a solve against ``dots``') and, at the first lanes, float32 factors with two refinements: medians of ``--repeat`` (each ended by a
-synchronisation) of the factorisation (and, alone, of its gather and elimination kernels: ``eliminate_ms``) and the
-solve, the envelope's entries and device MiB a copy, the copies
+copy in float64 (each ``--schedules``: how a copy's threads share the factorisation; with ``dots``, ``panels``
+and ``blocks`` each ``--groups`` lanes of a dot product; with ``blocks`` each ``--panels`` columns a panel, or the
+``--blocks`` pairs of columns and lanes, and its dependent steps a factorisation and a solve against ``dots``') and,
+at the first lanes, float32 factors with two refinements: medians of ``--repeat`` (each ended by a synchronisation)
+of the factorisation (and, alone, of its gather and elimination kernels: ``eliminate_ms``) and the solve, the
+envelope's entries and device MiB a copy, the copies
 marked indefinite, and the largest per-copy relative residual ``|A x_c - b_c| / |b_c|`` (the CG's float64 product).
 """
 
@@ -39,8 +40,8 @@ def main() -> int:
     ap.add_argument("--panels", default="",
                     help="columns a panel with the blocks schedule, comma-separated (default: the solver's)")
     ap.add_argument("--blocks", default="",
-                    help="the blocks schedule's variants as PANEL:LANES pairs, comma-separated, in this order (in place "
-                         "of --panels x --lanes)")
+                    help="the blocks schedule's variants as PANEL:LANES pairs, comma-separated, in this order "
+                         "(in place of --panels x --lanes)")
     ap.add_argument("--cg", action=argparse.BooleanOptionalAction, default=True,
                     help="time the batched CG first (as the lockstep makes it)")
     ap.add_argument("--mixed", action=argparse.BooleanOptionalAction, default=True,

@@ -40,7 +40,7 @@ block and its pivots' inverses in a scratch array of ``(B (P^2 + P),)`` float64 
 import numpy as np
 
 from sim_core.ti_backend import ti
-from sim_core.ti_kernels.envelope_cholesky import _F64, _I32, _gather_rhs, _group_sum, _pivot, _row_dot
+from sim_core.ti_kernels.envelope_funcs import _F64, _I32, _gather_rhs, _group_sum, _pivot, _row_dot
 from sim_core.ti_kernels.precision import VALUES, stored
 
 PANEL = 12

@@ -28,9 +28,9 @@ D^-1/2`` is the Cholesky factor, Golub & Van Loan, Matrix Computations, 4th ed.,
 thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Four orders of the same arithmetic
 (``schedule``):
 
-- ``"dots"`` (the default on CUDA, :data:`CUDA_SCHEDULE`), left-looking by columns (George & Liu, Sec. 4.2's inner-product form): column ``j``'s
-  entries ``w_ij = a_ij - sum_k w_ik w_jk / d_k`` (``i = j`` and the rows of ``j``'s front, ``k`` from ``max(first[i],
-  first[j])`` to ``j - 1``) are dot products of two contiguous segments of envelope rows, independent of each other;
+- ``"dots"`` (the default, :data:`CUDA_SCHEDULE` and :data:`SCHEDULE`), left-looking by columns (George & Liu,
+  Sec. 4.2's inner-product form): column ``j``'s entries ``w_ij = a_ij - sum_k w_ik w_jk / d_k`` (``i = j`` and the
+  rows of ``j``'s front, ``k`` from ``max(first[i], first[j])`` to ``j - 1``) are dot products of two contiguous segments of envelope rows, independent of each other;
   ``group`` lanes of a warp take one (``group`` consecutive ``k`` a pass, two sums in flight, then a shuffle sum), the
   copy's ``lanes / group`` groups share the column's entries, and each factor entry is written once. ``1 / d_j`` is
   kept per copy (``(B m,)`` float64) for the later columns.
@@ -86,11 +86,11 @@ import numpy as np
 
 from sim_core.ti_backend import require_backend, ti
 from sim_core.ti_kernels import transfer
+from sim_core.ti_kernels.envelope_blocks import PANEL, factor_blocks, launch_shape, panel_rows, substitute_blocks
+from sim_core.ti_kernels.envelope_funcs import _F64, _I32, _gather_rhs, _group_sum, _pivot, _row_dot
 from sim_core.ti_kernels.pcg import BatchedPCG, _apply, _copy_in, _copy_out
 from sim_core.ti_kernels.precision import VALUES, stored
 
-_F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
-_I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 CUDA_LANES = 256
 """Threads of one copy (one CUDA thread block) in the factorisation on CUDA (and the column solve; the row solve of
@@ -118,15 +118,6 @@ unrolled panels take ~120 s to compile into an empty cache against ~17 s (the fl
 load): not worth every CI process's first envelope on the CPU, where the envelope is opt-in
 (docs/gpu_roofline.md, "The envelope by panels of columns")."""
 
-
-
-@ti.func
-def _pivot(value):
-    """A pivot as the elimination uses it: ``value`` where positive, 1 where not (its copy is then reported)."""
-    d = ti.cast(value, ti.f64)
-    if not d > 0.0:
-        d = 1.0
-    return d
 
 
 @ti.kernel
@@ -269,26 +260,6 @@ def _factor(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: 
                             q -= p
                 if ti.static(lanes > 1):
                     ti.simt.block.sync()
-
-
-@ti.func
-def _group_sum(value, lane, group: ti.template()):
-    """The sum of ``value`` over the ``group`` consecutive lanes of a warp that hold ``lane`` (a power of two, at most
-    32; every lane of the group gets it): a butterfly of warp shuffles of the float64's two 32-bit halves (Taichi's
-    shuffles are 32-bit), the group's lanes only in the mask, so that other groups of the warp may have left."""
-    total = value
-    if ti.static(group > 1):
-        low = (lane % 32) // group * group
-        mask = ti.cast(-1, ti.u32)
-        if ti.static(group < 32):
-            mask = ti.cast((1 << group) - 1, ti.u32) << ti.cast(low, ti.u32)
-        for offset in ti.static([group >> s for s in range(1, group.bit_length())]):
-            bits = ti.bit_cast(total, ti.i64)
-            lo = ti.simt.warp.shfl_xor_i32(mask, ti.cast(bits, ti.i32), offset)
-            hi = ti.simt.warp.shfl_xor_i32(mask, ti.cast(bits >> 32, ti.i32), offset)
-            other = (ti.cast(hi, ti.i64) << 32) | ti.cast(ti.cast(lo, ti.u32), ti.i64)
-            total += ti.bit_cast(other, ti.f64)
-    return total
 
 
 @ti.kernel
@@ -505,33 +476,6 @@ def _back_substitute(env: ti.template(), off: ti.template(), first: ti.template(
             ti.simt.block.sync()
 
 
-@ti.func
-def _row_dot(env: ti.template(), w: ti.template(), row, vb, k, stop, stride):
-    """``sum w_ik w[vb + k]`` over ``k`` from ``k`` to ``stop - 1`` by ``stride`` (a lane's share of a row's sum; the
-    row's column ``k`` at ``env[row + k]``)."""
-    acc = 0.0
-    while k < stop:
-        acc += ti.cast(env[row + k], ti.f64) * w[vb + k]
-        k += stride
-    return acc
-
-
-@ti.func
-def _gather_rhs(order: ti.template(), todo: ti.template(), b: ti.template(), x: ti.template(), w: ti.template(), c, vb,
-                m, lane, lanes):
-    """A lane's share of copy ``c``'s right-hand side into ``w[vb:vb + m]`` in the envelope's order (0 where the copy
-    is not factorised, ``todo[c] == 0``, or a position is padding) and its solution ``x`` zeroed."""
-    p = lane
-    while p < m:
-        dof = order[vb + p]
-        w[vb + p] = 0.0
-        if dof >= 0:
-            if todo[c] != 0:
-                w[vb + p] = b[dof]
-            x[dof] = 0.0
-        p += lanes
-
-
 @ti.kernel
 def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, order: _I32, b: _F64,
                 x: _F64, w: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template(),
@@ -726,8 +670,6 @@ class BatchedEnvelope(BatchedPCG):
             raise ValueError(f"BatchedEnvelope: schedule must be one of {'|'.join(SCHEDULES)}, got {schedule!r}")
         self._schedule = schedule
         self._group = group
-        from sim_core.ti_kernels.envelope_blocks import PANEL
-
         self.panel = int(panel) if panel is not None else PANEL
         if self.panel < 1:
             raise ValueError(f"BatchedEnvelope: panel must be at least 1 column, got {panel}")
@@ -855,8 +797,6 @@ class BatchedEnvelope(BatchedPCG):
                            self._array("env_blk", 1 if shared else 8 * B), m, size, B, self._lane_count(), self.group,
                            pcap, shared)
         elif self.schedule == "blocks":
-            from sim_core.ti_kernels.envelope_blocks import factor_blocks
-
             shared, lanes, group, shape = self._blocks_launch(self._lane_count())
             factor_blocks(env, a["env_off"], a["env_first"], a["env_pptr"], a["env_prows"], todo, a["env_flags"],
                           self._array("env_inv", max(B * m, 1)), self._array("env_blk", 1 if shared else B * shape[2]),
@@ -891,8 +831,6 @@ class BatchedEnvelope(BatchedPCG):
         for name, host in (("env_off", off), ("env_first", self._first), ("env_fptr", fptr), ("env_frows", frows)):
             _copy_in(self._array(name, max(host.size, 1), ti.i32), host.astype(np.int32))
         if self.schedule == "blocks":
-            from sim_core.ti_kernels.envelope_blocks import panel_rows
-
             pptr, prows = panel_rows(self._first, self.panel)
             self._npanels = pptr.size - 1
             for name, host in (("env_pptr", pptr), ("env_prows", prows)):
@@ -932,8 +870,6 @@ class BatchedEnvelope(BatchedPCG):
         """``(shared, lanes, group, (threads, serial, width))`` of the ``"blocks"`` kernels with ``lanes`` threads a
         copy: on CUDA a block of them, the dot products' groups of :attr:`group`; elsewhere the lanes one after
         another in a copy's thread, groups of 1 (no shuffles on the CPU)."""
-        from sim_core.ti_kernels.envelope_blocks import launch_shape
-
         shared = require_backend("BatchedEnvelope") == "cuda"
         group = min(self.group, lanes) if shared else 1
         return shared, lanes, group, launch_shape(lanes, self.panel, shared)
@@ -941,8 +877,6 @@ class BatchedEnvelope(BatchedPCG):
     def _substitute_into(self, b, x) -> None:
         a = self._arrays
         if self.schedule == "blocks":
-            from sim_core.ti_kernels.envelope_blocks import substitute_blocks
-
             shared, lanes, group, shape = self._blocks_launch(min(self._lane_count(), 32))
             substitute_blocks(a["env"], a["env_off"], a["env_first"], a["env_todo"], a["env_order"], b, x,
                               self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,

@@ -20,7 +20,7 @@ ENERGIES = ("neohookean", "nodal_pressure", "green_strain", "modified_stvk", "me
 ROOT = Path(sim_core.energies.__file__).parent
 SHARED_TAICHI = {"__init__", "buffers", "launch", "linalg", "block_projection", "broad_phase", "hash_grid",
                  "hash_candidates", "sweep_candidates", "pair_filters", "pcg", "band_cholesky", "envelope_cholesky",
-                 "envelope_blocks", "transfer", "copy_vectors", "device_copy", "displacement_bounds", "compaction",
+                 "envelope_blocks", "envelope_funcs", "transfer", "copy_vectors", "device_copy", "displacement_bounds", "compaction",
                  "scan", "precision", "backtrack", "householder_projection"}
 
 

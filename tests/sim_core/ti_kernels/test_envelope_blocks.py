@@ -93,11 +93,11 @@ def test_a_lockstep_batch_solved_by_panels_gives_the_states_of_separate_runs(mon
     from sim_core.batch import BatchedSimulation
     from sim_core.scenes.task_scene import task_initial_state
     from sim_core.solver_config import SolverConfig
-    from sim_core.ti_kernels import envelope_blocks, envelope_cholesky
+    from sim_core.ti_kernels import envelope_cholesky
     from tests.support.batch_copies import MOTIONS, PARAMS, STEPS, control, pad_model, separate_run
 
     monkeypatch.setattr(envelope_cholesky, "SCHEDULE", "blocks")
-    monkeypatch.setattr(envelope_blocks, "PANEL", 4)
+    monkeypatch.setattr(envelope_cholesky, "PANEL", 4)
     model = pad_model()
     config = SolverConfig(lockstep=True, backend="taichi-cpu", linear_solver="envelope")
     batch = BatchedSimulation.from_model(model, len(PARAMS), params=PARAMS, state=task_initial_state(model),
