@@ -25,12 +25,12 @@ multiply-adds a factorisation (``benchmarks/roofline.py``).
 Factorisation. Kept unscaled, ``A = W D^-1 W^T`` with ``W`` lower triangular, ``W_jj = d_j`` (the pivots; ``L = W
 D^-1/2`` is the Cholesky factor, Golub & Van Loan, Matrix Computations, 4th ed., Sec. 4.2), ``lanes`` threads a copy
 (one CUDA thread block, a block-level synchronisation a column), a copy ``m`` synchronised passes; on the CPU one
-thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Three orders of the same arithmetic
+thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Four orders of the same arithmetic
 (``schedule``):
 
-- ``"dots"`` (the default), left-looking by columns (George & Liu, Sec. 4.2's inner-product form): column ``j``'s
-  entries ``w_ij = a_ij - sum_k w_ik w_jk / d_k`` (``i = j`` and the rows of ``j``'s front, ``k`` from ``max(first[i],
-  first[j])`` to ``j - 1``) are dot products of two contiguous segments of envelope rows, independent of each other;
+- ``"dots"`` (the default, :data:`CUDA_SCHEDULE` and :data:`SCHEDULE`), left-looking by columns (George & Liu,
+  Sec. 4.2's inner-product form): column ``j``'s entries ``w_ij = a_ij - sum_k w_ik w_jk / d_k`` (``i = j`` and the
+  rows of ``j``'s front, ``k`` from ``max(first[i], first[j])`` to ``j - 1``) are dot products of two contiguous segments of envelope rows, independent of each other;
   ``group`` lanes of a warp take one (``group`` consecutive ``k`` a pass, two sums in flight, then a shuffle sum), the
   copy's ``lanes / group`` groups share the column's entries, and each factor entry is written once. ``1 / d_j`` is
   kept per copy (``(B m,)`` float64) for the later columns.
@@ -43,6 +43,12 @@ thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Thre
   operations in every thread) and finishes its row's three entries. The pivots' inverses in a ring of shared memory
   (a power of two above the widest row: 512 float64 for Forming); on the CPU the same arithmetic with both in
   scratch arrays.
+- ``"blocks"`` (session 58; opt-in), left-looking by panels of ``panel`` columns
+  (:mod:`sim_core.ti_kernels.envelope_blocks`): a panel in three passes through global memory (its and its front's
+  rows' dot products over the earlier columns, ``P`` sums a row in one pass; the panel's triangle factorised in the
+  block's shared memory; the front's rows finished against it) instead of one a column, both substitutions in two
+  passes a panel; a Forming factorisation 426 dependent passes at ``P = 12`` against ``"dots"``' 1,698, a solve 570
+  against 3,397. On the CPU a copy's lanes run one after another in its thread (CI checks the lanes' sharing there).
 - ``"pairs"`` / ``"rows"`` (session 51), right-looking (outer-product) elimination: column ``j``'s update ``a_ik -=
   a_ij a_kj / d_j`` (``j < k <= i``, rows ``i, k`` in ``j``'s front) shared entry by entry (the pairs listed row by row,
   a lane every ``lanes``-th) or a thread a row; every update a read-modify-write of the envelope.
@@ -80,11 +86,11 @@ import numpy as np
 
 from sim_core.ti_backend import require_backend, ti
 from sim_core.ti_kernels import transfer
+from sim_core.ti_kernels.envelope_blocks import PANEL, factor_blocks, launch_shape, panel_rows, substitute_blocks
+from sim_core.ti_kernels.envelope_funcs import _F64, _I32, _gather_rhs, _group_sum, _pivot, _row_dot
 from sim_core.ti_kernels.pcg import BatchedPCG, _apply, _copy_in, _copy_out
 from sim_core.ti_kernels.precision import VALUES, stored
 
-_F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
-_I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 CUDA_LANES = 256
 """Threads of one copy (one CUDA thread block) in the factorisation on CUDA (and the column solve; the row solve of
@@ -95,23 +101,23 @@ CUDA_GROUP = 4
 """Lanes of one dot product in the left-looking factorisation (``schedule="dots"``) on CUDA: at 256 threads a copy 4
 and 8 tie (27.7 / 27.6 ms), 2 and 16 are slower (32.6 / 34.3; H100, B = 1024, session 52)."""
 
-SCHEDULES = ("pairs", "rows", "dots", "panels")
+SCHEDULES = ("pairs", "rows", "dots", "panels", "blocks")
 """How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""
 
 CUDA_SCHEDULE = "dots"
-"""The schedule of a :class:`BatchedEnvelope` given none on CUDA (elsewhere ``"dots"`` too). ``"panels"``' kernels
-are faster (6.4 against 8.1 ms at B = 1024, 2.7 against 3.6 at 256, H100) but the lockstep's steady Forming rate did
-not follow in the one A/B made (1,573 against 1,724 scene-steps/s at B = 1024, session 52): opt-in."""
+"""The schedule of a :class:`BatchedEnvelope` given none on CUDA. ``"panels"``' kernels are faster (6.4 against 8.1 ms
+at B = 1024, 2.7 against 3.6 at 256, H100) but the lockstep's steady Forming rate did not follow in the one A/B made
+(1,573 against 1,724 scene-steps/s at B = 1024, session 52): opt-in. ``"blocks"`` (panels of columns,
+:mod:`sim_core.ti_kernels.envelope_blocks`) has not run on a GPU yet (session 58's one call timed out compiling before
+its first figure): opt-in there until ``out/s58-52env/ab.sh`` (main's tree) measures it."""
 
+SCHEDULE = "dots"
+"""The schedule of a :class:`BatchedEnvelope` given none elsewhere than on CUDA (one thread a copy). ``"blocks"``
+factorises a Forming matrix ~1.5x faster there (59 against 91 ms at B = 8 on the VM, session 58) but its kernels'
+unrolled panels take ~120 s to compile into an empty cache against ~17 s (the float64 and float32 kernels, VM under
+load): not worth every CI process's first envelope on the CPU, where the envelope is opt-in
+(docs/gpu_roofline.md, "The envelope by panels of columns")."""
 
-
-@ti.func
-def _pivot(value):
-    """A pivot as the elimination uses it: ``value`` where positive, 1 where not (its copy is then reported)."""
-    d = ti.cast(value, ti.f64)
-    if not d > 0.0:
-        d = 1.0
-    return d
 
 
 @ti.kernel
@@ -254,26 +260,6 @@ def _factor(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: 
                             q -= p
                 if ti.static(lanes > 1):
                     ti.simt.block.sync()
-
-
-@ti.func
-def _group_sum(value, lane, group: ti.template()):
-    """The sum of ``value`` over the ``group`` consecutive lanes of a warp that hold ``lane`` (a power of two, at most
-    32; every lane of the group gets it): a butterfly of warp shuffles of the float64's two 32-bit halves (Taichi's
-    shuffles are 32-bit), the group's lanes only in the mask, so that other groups of the warp may have left."""
-    total = value
-    if ti.static(group > 1):
-        low = (lane % 32) // group * group
-        mask = ti.cast(-1, ti.u32)
-        if ti.static(group < 32):
-            mask = ti.cast((1 << group) - 1, ti.u32) << ti.cast(low, ti.u32)
-        for offset in ti.static([group >> s for s in range(1, group.bit_length())]):
-            bits = ti.bit_cast(total, ti.i64)
-            lo = ti.simt.warp.shfl_xor_i32(mask, ti.cast(bits, ti.i32), offset)
-            hi = ti.simt.warp.shfl_xor_i32(mask, ti.cast(bits >> 32, ti.i32), offset)
-            other = (ti.cast(hi, ti.i64) << 32) | ti.cast(ti.cast(lo, ti.u32), ti.i64)
-            total += ti.bit_cast(other, ti.f64)
-    return total
 
 
 @ti.kernel
@@ -506,15 +492,7 @@ def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, to
         lane = t % lanes
         base = c * size
         vb = c * m
-        p = lane
-        while p < m:
-            dof = order[vb + p]
-            w[vb + p] = 0.0
-            if dof >= 0:
-                if todo[c] != 0:
-                    w[vb + p] = b[dof]
-                x[dof] = 0.0
-            p += lanes
+        _gather_rhs(order, todo, b, x, w, c, vb, m, lane, lanes)
         if ti.static(lanes > 1):
             ti.simt.block.sync()
         if todo[c] != 0:
@@ -522,12 +500,7 @@ def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, to
                 for i in range(m):
                     fi = first[i]
                     row = base + off[i] - fi
-                    acc = 0.0
-                    k = fi + lane
-                    while k < i:
-                        acc += ti.cast(env[row + k], ti.f64) * w[vb + k]
-                        k += lanes
-                    acc = _group_sum(acc, lane, lanes)
+                    acc = _group_sum(_row_dot(env, w, row, vb, fi + lane, i, lanes), lane, lanes)
                     if lane == 0:
                         w[vb + i] = (w[vb + i] - acc) / _pivot(env[row + i])
                     if ti.static(lanes > 1):
@@ -646,18 +619,24 @@ class BatchedEnvelope(BatchedPCG):
         precision: ``"double"`` (float64 envelope and factor) or ``"mixed"`` (float32 envelope and factor, float64
             iterative refinement).
         refinements: refinement steps a solve with ``precision="mixed"`` (ignored with ``"double"``).
-        lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA, 1 elsewhere.
+        lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA, 1 elsewhere (where ``"blocks"`` runs more, they run one
+            after another in a copy's thread: :mod:`sim_core.ti_kernels.envelope_blocks`).
         schedule: how a copy's threads share its factorisation: right-looking, a column's update ``"pairs"`` (entry
             by entry) or ``"rows"`` (a thread a row); or left-looking ``"dots"`` (a column's entries as dot products of
             two rows, ``group`` lanes each, and both substitutions by rows, a warp a copy) or ``"panels"`` (a vertex's three
-            columns at once, the same substitutions); None: :data:`CUDA_SCHEDULE` on CUDA, ``"dots"`` elsewhere.
-        group: lanes of one dot product with ``schedule="dots"`` or ``"panels"``, a power of two of at most 32 dividing the lanes;
-            None: :data:`CUDA_GROUP` with several threads a copy (at most the lanes), 1 with one.
+            columns at once, the same substitutions) or ``"blocks"`` (panels of ``panel`` columns, three passes a panel,
+            the substitutions by panels too: :mod:`sim_core.ti_kernels.envelope_blocks`); None: :data:`CUDA_SCHEDULE`
+            on CUDA, :data:`SCHEDULE` elsewhere.
+        group: lanes of one dot product with ``schedule="dots"``, ``"panels"`` or ``"blocks"`` (on CUDA), a power of two
+            of at most 32 dividing the lanes; None: :data:`CUDA_GROUP` with several threads a copy (at most the lanes),
+            1 with one.
+        panel: columns a panel with ``schedule="blocks"``, at least 1; None:
+            :data:`~sim_core.ti_kernels.envelope_blocks.PANEL`.
 
     Raises:
         ConfigError: an unknown ``precision``.
-        ValueError: an unknown ``schedule``, or a ``group`` that is not a power of two of at most 32 dividing the
-            lanes.
+        ValueError: an unknown ``schedule``, a ``group`` that is not a power of two of at most 32 dividing the
+            lanes, or a ``panel`` under 1.
 
     Attributes:
         name: ``"envelope"``.
@@ -678,7 +657,8 @@ class BatchedEnvelope(BatchedPCG):
     ``"mixed"`` refinements read the operator of that factorisation too)."""
 
     def __init__(self, segments: "np.ndarray | None" = None, precision: str = "double", refinements: int = 2,
-                 lanes: int | None = None, schedule: str | None = None, group: int | None = None) -> None:
+                 lanes: int | None = None, schedule: str | None = None, group: int | None = None,
+                 panel: int | None = None) -> None:
         super().__init__(segments, precision="double")  # the operator (for the refinement's residual) in float64
         from sim_core.ti_kernels.precision import storage_dtype
 
@@ -690,6 +670,10 @@ class BatchedEnvelope(BatchedPCG):
             raise ValueError(f"BatchedEnvelope: schedule must be one of {'|'.join(SCHEDULES)}, got {schedule!r}")
         self._schedule = schedule
         self._group = group
+        self.panel = int(panel) if panel is not None else PANEL
+        if self.panel < 1:
+            raise ValueError(f"BatchedEnvelope: panel must be at least 1 column, got {panel}")
+        self._npanels = 0
         if group is not None:
             self.group  # (checked against the lanes now)
         self._pcap = 1
@@ -706,10 +690,10 @@ class BatchedEnvelope(BatchedPCG):
 
     @property
     def schedule(self) -> str:
-        """``"pairs"``, ``"rows"``, ``"dots"`` or ``"panels"`` (the class docstring)."""
+        """``"pairs"``, ``"rows"``, ``"dots"``, ``"panels"`` or ``"blocks"`` (the class docstring)."""
         if self._schedule is not None:
             return self._schedule
-        return CUDA_SCHEDULE if require_backend("BatchedEnvelope") == "cuda" else "dots"
+        return CUDA_SCHEDULE if require_backend("BatchedEnvelope") == "cuda" else SCHEDULE
 
     @property
     def group(self) -> int:
@@ -812,6 +796,11 @@ class BatchedEnvelope(BatchedPCG):
                            self._array("env_pring", 1 if shared else B * pcap),
                            self._array("env_blk", 1 if shared else 8 * B), m, size, B, self._lane_count(), self.group,
                            pcap, shared)
+        elif self.schedule == "blocks":
+            shared, lanes, group, shape = self._blocks_launch(self._lane_count())
+            factor_blocks(env, a["env_off"], a["env_first"], a["env_pptr"], a["env_prows"], todo, a["env_flags"],
+                          self._array("env_inv", max(B * m, 1)), self._array("env_blk", 1 if shared else B * shape[2]),
+                          m, size, B, self._npanels, lanes, group, self.panel, shared, *shape)
         elif self.schedule == "dots":
             _factor_dots(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo, a["env_flags"],
                          self._array("env_inv", max(B * m, 1)), m, size, B, self._lane_count(), self.group)
@@ -841,6 +830,11 @@ class BatchedEnvelope(BatchedPCG):
                              f"indices")
         for name, host in (("env_off", off), ("env_first", self._first), ("env_fptr", fptr), ("env_frows", frows)):
             _copy_in(self._array(name, max(host.size, 1), ti.i32), host.astype(np.int32))
+        if self.schedule == "blocks":
+            pptr, prows = panel_rows(self._first, self.panel)
+            self._npanels = pptr.size - 1
+            for name, host in (("env_pptr", pptr), ("env_prows", prows)):
+                _copy_in(self._array(name, max(host.size, 1), ti.i32), host.astype(np.int32))
         widest = int((np.arange(self._m) - self._first).max()) + 1 if self._m else 1
         self._pcap = 1 << widest.bit_length()  # (the pivots' ring of "panels": a power of two above the widest row)
         padded = np.flatnonzero(self._order.reshape(-1) < 0)  # (none while every copy has the same count)
@@ -872,8 +866,22 @@ class BatchedEnvelope(BatchedPCG):
                 self._substitute_into(r, dx)
                 _add(x, dx, n)
 
+    def _blocks_launch(self, lanes: int) -> tuple:
+        """``(shared, lanes, group, (threads, serial, width))`` of the ``"blocks"`` kernels with ``lanes`` threads a
+        copy: on CUDA a block of them, the dot products' groups of :attr:`group`; elsewhere the lanes one after
+        another in a copy's thread, groups of 1 (no shuffles on the CPU)."""
+        shared = require_backend("BatchedEnvelope") == "cuda"
+        group = min(self.group, lanes) if shared else 1
+        return shared, lanes, group, launch_shape(lanes, self.panel, shared)
+
     def _substitute_into(self, b, x) -> None:
         a = self._arrays
+        if self.schedule == "blocks":
+            shared, lanes, group, shape = self._blocks_launch(min(self._lane_count(), 32))
+            substitute_blocks(a["env"], a["env_off"], a["env_first"], a["env_todo"], a["env_order"], b, x,
+                              self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
+                              self._copies, self._npanels, lanes, group, self.panel, shared, *shape[:2])
+            return
         by_rows = self.schedule in ("dots", "panels")
         _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"],
                     a["env_order"], b, x, self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,

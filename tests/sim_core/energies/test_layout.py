@@ -19,9 +19,9 @@ ENERGIES = ("neohookean", "nodal_pressure", "green_strain", "modified_stvk", "me
             "kirchhoff_bending", "contact", "friction", "damping", "inertia", "gravity", "sphere_contact")
 ROOT = Path(sim_core.energies.__file__).parent
 SHARED_TAICHI = {"__init__", "buffers", "launch", "linalg", "block_projection", "broad_phase", "hash_grid",
-                 "hash_candidates", "sweep_candidates", "pair_filters", "pcg", "band_cholesky", "envelope_cholesky", "transfer",
-                 "copy_vectors", "device_copy", "displacement_bounds", "compaction", "scan", "precision", "backtrack",
-                 "householder_projection"}
+                 "hash_candidates", "sweep_candidates", "pair_filters", "pcg", "band_cholesky", "envelope_cholesky",
+                 "envelope_blocks", "envelope_funcs", "transfer", "copy_vectors", "device_copy", "displacement_bounds", "compaction",
+                 "scan", "precision", "backtrack", "householder_projection"}
 
 
 def test_every_energy_has_its_folder_and_nothing_else_is_one():

@@ -13,6 +13,10 @@ import scipy.sparse.linalg as spla
 
 from sim_core.solver_config import SolverConfig
 
+PANEL = 5
+"""Columns a panel of ``schedule="blocks"`` here (ignored by the others): not a divisor of a vertex's three, few
+to compile."""
+
 
 def _grid_block(nx: int, ny: int, seed: int, shift: float) -> sp.csr_matrix:
     """A symmetric positive definite matrix of a ``nx x ny`` vertex grid (3 DoFs a vertex, 3x3 blocks coupling grid
@@ -42,7 +46,7 @@ def _upper(A: sp.spmatrix) -> sp.csr_matrix:
     return u
 
 
-@pytest.mark.parametrize("schedule", ["rows", "pairs", "dots", "panels"])
+@pytest.mark.parametrize("schedule", ["rows", "pairs", "dots", "panels", "blocks"])
 def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cpu, schedule):
     """Each order of the elimination: right-looking entry by entry or by rows, left-looking by dot products (one thread
     a copy here: the entries' order is CUDA's by lane)."""
@@ -52,7 +56,7 @@ def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cp
     A = sp.block_diag(blocks, format="csr")
     m = blocks[0].shape[0]
     segments = np.repeat(np.arange(3), m)
-    solver = BatchedEnvelope(segments, schedule=schedule)
+    solver = BatchedEnvelope(segments, schedule=schedule, panel=PANEL)
     assert solver.schedule == schedule
     assert solver.factorize(_upper(A))
     b = np.random.default_rng(5).normal(size=A.shape[0])
@@ -71,7 +75,7 @@ def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cp
     np.testing.assert_allclose(x[:m], want[:m], rtol=0, atol=1e-10 * np.abs(want).max())
 
 
-@pytest.mark.parametrize("schedule", ["dots", "panels"])
+@pytest.mark.parametrize("schedule", ["dots", "panels", "blocks"])
 def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_is_applied(ti_cpu, schedule):
     """Contact-like 3x3 blocks between far vertices of a copy (matrix-free in the CG) are factorised exactly: the
     envelope widens to hold them; the inertia diagonal and the fixed DoFs' 1 are applied on the device; the fixed
@@ -114,7 +118,7 @@ def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_i
     U.data[diag_slots] += diag_values
     U.data[fixed] = 1.0
     A = (U + U.T - sp.diags(U.diagonal()) + F @ E.tocsr() @ F).tocsc()
-    solver = BatchedEnvelope(segments, schedule=schedule)
+    solver = BatchedEnvelope(segments, schedule=schedule, panel=PANEL)
     vb = VertexBlocks.from_element_blocks([HessianBlocks(verts, vals)], free)
     solver.factorize((upper.indptr, upper.indices, upper.data.copy()), vb, (diag_slots, diag_values, fixed))
     b = rng.normal(size=n)
@@ -130,7 +134,7 @@ def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_i
     from sim_core.ti_kernels.copy_vectors import CopyVectors
 
     one = np.array([False, True])
-    solver = BatchedEnvelope(segments, schedule=schedule)
+    solver = BatchedEnvelope(segments, schedule=schedule, panel=PANEL)
     solver.factorize((upper.indptr, upper.indices, upper.data.copy()), vb, (diag_slots, diag_values, fixed),
                      copies=CopyVectors(np.arange(n // 3).reshape(2, -1)).blend_actions(one, ~one))
     x = solver.solve(b)
@@ -139,7 +143,7 @@ def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_i
     np.testing.assert_allclose(x[m:], want[m:], rtol=0, atol=1e-10 * np.abs(want).max())
 
 
-@pytest.mark.parametrize("schedule", ["dots", "panels"])
+@pytest.mark.parametrize("schedule", ["dots", "panels", "blocks"])
 def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu, schedule):
     from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
 
@@ -150,7 +154,8 @@ def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu, sche
     want = spla.spsolve(A.tocsc(), b)
     errors = []
     for refinements in (0, 3):
-        solver = BatchedEnvelope(segments, precision="mixed", refinements=refinements, schedule=schedule)
+        solver = BatchedEnvelope(segments, precision="mixed", refinements=refinements, schedule=schedule,
+                                 panel=PANEL)
         solver.factorize(_upper(A))
         errors.append(np.abs(solver.solve(b) - want).max() / np.abs(want).max())
         assert solver.iterations == 1 + refinements
@@ -167,7 +172,7 @@ def test_a_dot_products_group_must_be_a_power_of_two_dividing_the_lanes(ti_cpu):
     for lanes, group in ((128, 3), (128, 64), (16, 32)):
         with pytest.raises(ValueError, match=f"dividing the {lanes} lanes, got {group}"):
             BatchedEnvelope(segments, lanes=lanes, group=group)
-    with pytest.raises(ValueError, match=r"schedule must be one of pairs\|rows\|dots\|panels, got .columns."):
+    with pytest.raises(ValueError, match=r"schedule must be one of pairs\|rows\|dots\|panels\|blocks, got .columns."):
         BatchedEnvelope(segments, schedule="columns")
 
 
@@ -178,7 +183,7 @@ def test_envelope_needs_a_taichi_backend():
         SolverConfig(linear_solver="envelope")
 
 
-@pytest.mark.parametrize("schedule", ["dots", "panels"])
+@pytest.mark.parametrize("schedule", ["dots", "panels", "blocks"])
 def test_a_diverged_copy_is_isolated_and_copies_left_out_get_zero(ti_cpu, schedule):
     """A copy whose matrix holds NaN (a diverged copy of a lockstep batch) is reported and leaves the others exact; the
     copies left out of a factorisation (``copies``) get a zero solution, the others the exact one."""
@@ -191,7 +196,7 @@ def test_a_diverged_copy_is_isolated_and_copies_left_out_get_zero(ti_cpu, schedu
     A = sp.block_diag(blocks, format="csr")
     want = spla.spsolve(A.tocsc(), b)
     upper = _upper(A)
-    solver = BatchedEnvelope(segments, schedule=schedule)
+    solver = BatchedEnvelope(segments, schedule=schedule, panel=PANEL)
     diverged = upper.copy()
     rows = np.repeat(np.arange(3 * m), np.diff(upper.indptr))
     diverged.data = np.where(rows // m == 1, np.nan, upper.data)
@@ -208,7 +213,7 @@ def test_a_diverged_copy_is_isolated_and_copies_left_out_get_zero(ti_cpu, schedu
     np.testing.assert_allclose(x, np.where(segments == 1, 0.0, want), rtol=0, atol=1e-10 * np.abs(want).max())
 
 
-@pytest.mark.parametrize("schedule", ["dots", "panels"])
+@pytest.mark.parametrize("schedule", ["dots", "panels", "blocks"])
 def test_copies_marked_on_the_device_are_solved_as_by_a_full_factorisation_and_the_others_not_touched(ti_cpu,
                                                                                                        schedule):
     """The copies to factorise given as a device array (a blend's actions, as the lockstep's converged copies are
@@ -222,7 +227,7 @@ def test_copies_marked_on_the_device_are_solved_as_by_a_full_factorisation_and_t
     segments = np.repeat(np.arange(3), m)
     b = np.random.default_rng(9).normal(size=3 * m)
     upper = _upper(sp.block_diag(blocks, format="csr"))
-    solver = BatchedEnvelope(segments, schedule=schedule)
+    solver = BatchedEnvelope(segments, schedule=schedule, panel=PANEL)
     assert solver.device_copies
     solver.factorize(upper)
     full = solver.solve(b)
