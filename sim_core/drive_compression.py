@@ -1,0 +1,214 @@
+"""A series spring's compression as one more unknown of the step's Newton solve (the joint drive step).
+
+:mod:`sim_core.series_drive` holds an effector on a spring of stiffness ``k_s`` along a unit axis ``n``
+(world, into the contact) with a damper ``c`` on the tool's velocity along ``n``: the tool ends the step at
+``p(b) = a - b n`` (``a`` the anchor, ``b`` the spring's compression) and the driven (base) vertices move
+rigidly with it, ``x_base(b) = X_base - b n`` (``X_base`` their positions with the tool at the anchor). Here
+``b`` joins the step's positions as an unknown of one incremental potential,
+
+    ``E(x, b) = E_step(x; x_base(b)) + k_s b^2 / 2 + (c / 2 dt) (b - d)^2 - b n . G``,
+
+``E_step`` the step's potential (:mod:`sim_core.solver`), ``d = (a - p_prev) . n`` the anchor's reach past
+the tool's position at the step's start (the damper's energy: ``c / (2 dt) ((p(b) - p_prev) . n)^2``) and
+``G = sum_i m_i g`` the weight of the load vertices (the driven body; the arm compensates its tool's weight,
+so that in free motion at rest ``b = 0`` as with :class:`~sim_core.series_drive.SeriesSpringDrive`'s secant).
+Its stationarity in ``b``,
+
+    ``dE/db = -n . sum_base dE_step/dx_i + K b - (c / dt) d - n . G = 0``,    ``K = k_s + c / dt``,
+
+is the secant's balance ``h(b) = F - K b + c d / dt = 0`` with the load ``F`` read as the base's reaction:
+where the free vertices are at rest in ``E`` (``dE/dx_i = 0``) and the load body's elastic energy does not
+change under its rigid translation, ``-n . sum_base dE_step/dx_i = F + N - n . G``, with ``F`` the contact
+and friction load (``SeriesSpringDrive.load``) and ``N = n . sum_load [m_i / dt^2 (x_i - x_hat_i) +
+gamma m_i / dt (x_i - x_i^n)]`` the load body's inertia and mass-proportional damping (``gamma`` the model's
+``damping``): the spring carries the driven body's inertia too (``m a``; a few mN for a gel pad of grams in
+a replay, against the secant's force tolerance of about 1 mN). The step's minimiser over ``(x, b)`` is the
+branch the Newton path reaches from its start, so a fold of ``F(b)`` (lift-off: the buckled card follows the
+pad or lies down) is decided by the energy, and a drive step costs one Newton solve.
+
+Newton system: the base vertices are kept free in the step's assembly (their rows and columns in the
+Newton matrix ``H``) and tied to ``b``: with ``S`` the map ``(x_free, b) -> x`` (``dx_base = -n db``) the
+reduced matrix is ``S^T H S + K`` on ``b``, i.e. the step's constrained matrix (base rows and columns cleared,
+1 on their diagonal), bordered by the column ``u = -H_{free, base} n`` and the corner
+``n^T H_{base, base} n + K`` (:meth:`CompressionPotential.bordered`), factorised in one piece (one column and
+row more than the kinematic step's). ``S^T H S`` is positive semidefinite wherever ``H`` is (a projected
+Hessian), and ``K > 0``: the projected matrix is as safe as the step's. The spring's energy is spread over
+the base vertices as a potential of their positions (:meth:`CompressionPotential.energy`, ``gradient``:
+``b(x)`` the base's mean displacement along ``-n``), so the step's line search and Armijo test read ``E(x,
+b)`` unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from sim_core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class CompressionUnknown:
+    """The series spring of one step whose compression the step's Newton solve takes as an unknown
+    (``Control.compression``; module docstring).
+
+    Attributes:
+        effector: the driven effector's name (its vertices are the base that moves with ``b``).
+        axis: unit axis ``n`` (3,), world, pointing into the contact.
+        stiffness: the spring's ``k_s``, N/m (> 0, finite).
+        rate: the damper's ``c / dt``, N/m (>= 0).
+        reach: ``d = (a - p_prev) . n``, m: the anchor's reach past the tool's position at the step's start.
+        start: the compression ``b`` (m) the Newton iterations start from.
+        load_vertices: global indices of the driven body's vertices (the load vertices), ``(l,)``: their weight
+            is compensated.
+    """
+
+    effector: str
+    axis: np.ndarray
+    stiffness: float
+    rate: float
+    reach: float
+    start: float
+    load_vertices: np.ndarray
+
+    def __post_init__(self) -> None:
+        axis = np.asarray(self.axis, dtype=float)
+        if axis.shape != (3,) or abs(float(np.linalg.norm(axis)) - 1.0) > 1e-9:
+            raise ConfigError(f"compression of {self.effector!r}: axis must be a unit 3-vector, got {axis.tolist()}")
+        if not (np.isfinite(self.stiffness) and self.stiffness > 0.0):
+            raise ConfigError(f"compression of {self.effector!r}: stiffness must be finite and > 0 N/m, "
+                              f"got {self.stiffness!r}")
+        if not (np.isfinite(self.rate) and self.rate >= 0.0):
+            raise ConfigError(f"compression of {self.effector!r}: damper rate c/dt must be finite and >= 0 N/m, "
+                              f"got {self.rate!r}")
+        if not (np.isfinite(self.reach) and np.isfinite(self.start)):
+            raise ConfigError(f"compression of {self.effector!r}: reach and start must be finite, got "
+                              f"{self.reach!r} m, {self.start!r} m")
+
+    @property
+    def curvature(self) -> float:
+        """``K = k_s + c / dt``, N/m: the spring's energy's second derivative in ``b``."""
+        return float(self.stiffness + self.rate)
+
+    def spring_energy(self, b: float, weight: float) -> float:
+        """``k_s b^2 / 2 + (c / 2 dt) (b - d)^2 - b w`` (J), ``w = n . G`` (N) the compensated weight."""
+        return 0.5 * self.stiffness * b * b + 0.5 * self.rate * (b - self.reach) ** 2 - b * weight
+
+    def spring_force(self, b: float, weight: float) -> float:
+        """The spring energy's derivative in ``b``: ``K b - (c / dt) d - w`` (N)."""
+        return self.curvature * b - self.rate * self.reach - weight
+
+
+class CompressionPotential:
+    """The spring's part of the joint step's potential, a function of the base vertices' positions, and the
+    bordered Newton matrix of the tied base (module docstring).
+
+    Args:
+        unknown: the :class:`CompressionUnknown`.
+        base: global indices of the effector's driven vertices, ``(m,)``.
+        anchored: their positions with the tool at the anchor (``b = 0``), ``(m, 3)`` m.
+        weight: ``w = n . G``, N: the load vertices' weight along ``n``.
+        free: the kinematic step's free DoFs (the base held), ``(3 n,)`` bool.
+
+    Attributes:
+        free: ``free``, read-only.
+        base_dofs: the base vertices' DoFs, ``(3 n,)`` bool.
+        tied: ``S_b = dx / db``, ``(3 n,)``: ``-n`` on each base vertex, zero elsewhere.
+    """
+
+    def __init__(self, unknown: CompressionUnknown, base: np.ndarray, anchored: np.ndarray, weight: float,
+                 free: np.ndarray) -> None:
+        self.unknown = unknown
+        self.axis = np.asarray(unknown.axis, dtype=float)
+        self.base = np.asarray(base, dtype=np.int64).reshape(-1)
+        if self.base.size == 0:
+            raise ConfigError(f"compression of {unknown.effector!r}: the effector drives no vertices")
+        self.anchored = np.asarray(anchored, dtype=float).reshape(-1, 3)
+        self.weight = float(weight)
+        self.base_dofs = np.zeros(free.size, dtype=bool)
+        self.base_dofs[(3 * self.base[:, None] + np.arange(3)).reshape(-1)] = True
+        self.tied = np.zeros(free.size)  # dx / db on the base's DoFs: -n on each base vertex
+        self.tied.reshape(-1, 3)[self.base] = -self.axis
+        self.free = np.asarray(free, dtype=bool) & ~self.base_dofs
+        self.free.flags.writeable = False
+
+    def positions(self, b: float) -> np.ndarray:
+        """The base vertices at compression ``b`` (m): ``X_base - b n``, ``(m, 3)`` m."""
+        return self.anchored - b * self.axis
+
+    def compression(self, x: np.ndarray) -> float:
+        """``b`` (m) of positions ``x`` ``(n, 3)``: the base's mean displacement from its anchored positions along
+        ``-n``."""
+        return float(np.mean((self.anchored - x[self.base]) @ self.axis))
+
+    def energy(self, x: np.ndarray) -> float:
+        """The spring and damper's energy at the compression of ``x`` (J), the compensated weight's included."""
+        return self.unknown.spring_energy(self.compression(x), self.weight)
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """:meth:`energy`'s gradient in ``x``, ``(n, 3)`` J/m: ``-n E_s'(b) / m`` on each of the ``m`` base
+        vertices, zero elsewhere."""
+        g = np.zeros_like(x)
+        g[self.base] = (-self.unknown.spring_force(self.compression(x), self.weight) / self.base.size) * self.axis
+        return g
+
+    def reduced_gradient(self, g: np.ndarray) -> np.ndarray:
+        """The gradient in ``(x_free, b)``, ``(3 n + 1,)``: ``g`` ``(3 n,)`` (the step's, with the base free and
+        :meth:`gradient` in it) on the kinematic step's free DoFs, zero elsewhere, and ``dE/db = S_b^T g``
+        last."""
+        reduced = np.zeros(g.size + 1)
+        reduced[:-1][self.free] = g[self.free]
+        reduced[-1] = float(self.tied @ g)
+        return reduced
+
+    def update(self, reduced: np.ndarray) -> np.ndarray:
+        """The positions' update ``S q`` ``(3 n,)`` of a reduced update ``q = (dx_free, db)`` ``(3 n + 1,)``."""
+        d = np.where(self.free, reduced[:-1], 0.0)
+        return d + reduced[-1] * self.tied
+
+    def constrained(self, upper: sp.csr_matrix) -> sp.csr_matrix:
+        """The kinematic step's constrained matrix from ``upper`` (the upper triangle with the base free): the base's
+        rows and columns cleared, 1 on their diagonal; the sparsity pattern kept (a new matrix)."""
+        rows = np.repeat(np.arange(upper.shape[0]), np.diff(upper.indptr))
+        cols = upper.indices
+        data = upper.data.copy()
+        data[self.base_dofs[rows] | self.base_dofs[cols]] = 0.0
+        data[self.base_dofs[rows] & (rows == cols)] = 1.0
+        return sp.csr_matrix((data, cols.copy(), upper.indptr.copy()), shape=upper.shape)
+
+    def bordered(self, upper: sp.csr_matrix) -> sp.csr_matrix:
+        """The reduced Newton matrix ``S^T H S + K e_b e_b^T`` (upper triangle, ``(3 n + 1, 3 n + 1)`` CSR with sorted
+        indices) of ``upper``, the step's Newton matrix with the base free (upper triangle with the diagonal):
+        :meth:`constrained` bordered by ``u = H S_b`` on the free DoFs and the corner ``S_b^T H S_b + K``.
+
+        The border column's pattern is every row the pattern couples to a base DoF, so it stays with the
+        pattern of ``upper`` (the linear solver's symbolic analysis is kept while that is)."""
+        n = upper.shape[0]
+        rows = np.repeat(np.arange(n), np.diff(upper.indptr))
+        cols = upper.indices
+        diagonal = rows == cols
+        # H S_b from the upper triangle: each off-diagonal entry acts on both sides
+        tied = self.tied
+        column = np.bincount(rows, upper.data * tied[cols], minlength=n)
+        column += np.bincount(cols[~diagonal], (upper.data * tied[rows])[~diagonal], minlength=n)
+        corner = float(tied @ column) + self.unknown.curvature
+        coupled = np.zeros(n, dtype=bool)
+        coupled[rows[self.base_dofs[cols]]] = True
+        coupled[cols[self.base_dofs[rows]]] = True
+        coupled &= self.free
+        inner = self.constrained(upper)
+        counts = np.diff(inner.indptr) + coupled
+        indptr = np.zeros(n + 2, dtype=np.int64)
+        np.cumsum(counts, out=indptr[1:n + 1])
+        indptr[n + 1] = indptr[n] + 1
+        indices = np.empty(indptr[-1], dtype=np.int64)
+        data = np.empty(indptr[-1])
+        # each row's entries, then its border entry (column n, after every other column: the order stays sorted)
+        shift = np.repeat(indptr[:n] - inner.indptr[:n], np.diff(inner.indptr))
+        slots = np.arange(inner.indptr[-1]) + shift
+        indices[slots], data[slots] = inner.indices, inner.data
+        ends = indptr[1:n + 1][coupled] - 1
+        indices[ends], data[ends] = n, column[coupled]
+        indices[-1], data[-1] = n, corner
+        return sp.csr_matrix((data, indices, indptr), shape=(n + 1, n + 1))
