@@ -137,6 +137,13 @@ class CompressionPotential:
         """The base vertices at compression ``b`` (m): ``X_base - b n``, ``(m, 3)`` m."""
         return self.anchored - b * self.axis
 
+    def start_poses(self, poses: dict) -> dict:
+        """``poses`` (effector name -> pose ``(7,)``) with the effector's at the start compression: ``b_0`` behind
+        its anchor along ``n`` (a new dict)."""
+        pose = np.array(poses[self.unknown.effector], dtype=float)
+        pose[:3] -= self.unknown.start * self.axis
+        return {**poses, self.unknown.effector: pose}
+
     def compression(self, x: np.ndarray) -> float:
         """``b`` (m) of positions ``x`` ``(n, 3)``: the base's mean displacement from its anchored positions along
         ``-n``."""

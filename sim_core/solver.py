@@ -462,16 +462,18 @@ class NewtonSolver:
         asleep = frozenset(self._sleep.bodies)
         if asleep:
             fixed = fixed | self._sleep.mask  # held at their positions (x_target is state_in.x there)
+        compression, carried_poses = None, poses
+        if control.compression is not None:  # the base kept free, tied to the compression (sim_core.drive_compression)
+            compression = self._compression(state_in, control, fixed, x_target, poses, openings, info)
+            carried_poses = compression.start_poses(poses)
         (free, fixed_dofs), x_n = self._free_dofs(fixed), state_in.x
         x = x_n.copy() if guess is None else guess.copy()
         if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
-            carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
-                                openings, fixed, x_target, x)
+            carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening,
+                                carried_poses, openings, fixed, x_target, x)
         np.copyto(x, x_target, where=fixed_dofs)  # the fixed vertices at their targets (one pass, no gather)
-        compression = None
-        if control.compression is not None:  # the base kept free, tied to the compression (sim_core.drive_compression)
-            compression = self._compression(control, fixed, x_target, x)
-            free = compression.free | compression.base_dofs
+        if compression is not None:  # the base at the start compression
+            x[compression.base] = x_target[compression.base]
         x_hat, mass = x_n + dt * state_in.v, self.vertex_mass
         gravity_mass = mass if model.vertex_gravity_scale is None else mass * model.vertex_gravity_scale
         fixed_terms = [InertiaPotential(mass, x_hat, dt), GravityPotential(gravity_mass, model.gravity)]
@@ -530,28 +532,36 @@ class NewtonSolver:
         )
         return step, x
 
-    def _compression(self, control: Control, fixed: np.ndarray, x_target: np.ndarray,
-                     x: np.ndarray) -> CompressionPotential:
+    def _compression(self, state_in: State, control: Control, fixed: np.ndarray, x_target: np.ndarray,
+                     poses: dict, openings: dict, info: StepInfo) -> CompressionPotential:
         """The step's :class:`~sim_core.drive_compression.CompressionPotential` of ``control.compression``: its
-        effector's vertices (the base) freed in ``fixed``, and at the start compression in ``x_target`` and
-        ``x`` (all three written).
+        effector's vertices (the base) freed in ``fixed`` and at the start compression in ``x_target``; the
+        effector's pose in ``poses`` its anchor (all written). The anchor is the target with the
+        effector's rotation limit only: the tool ends the step where the spring's balance puts it, and the
+        anchor runs ahead of it by the compression (``b = F / k_s``: a few mm for newtons on an arm's spring,
+        which the per-step translation limit of a kinematic effector would clip).
 
         Raises:
             ConfigError: an unknown effector.
         """
         unknown = control.compression
-        if unknown.effector not in self.model.effectors:
-            raise ConfigError(f"control compression: unknown effector {unknown.effector!r}; known: "
-                              f"{list(self.model.effectors)}")
-        base = np.asarray(self.model.effectors[unknown.effector].vertices, dtype=np.int64)
-        anchored = x_target[base].copy()
+        name = unknown.effector
+        if name not in self.model.effectors or name not in control.effector_pose_target:
+            raise ConfigError(f"control compression: effector {name!r} is not among the control's targets "
+                              f"{list(control.effector_pose_target)} and the model's {list(self.model.effectors)}")
+        eff = self.model.effectors[name]
+        poses[name], rotated = limit_pose_step(state_in.effector_pose[name], control.effector_pose_target[name],
+                                               np.inf, eff.max_rotation_per_step)
+        info.limited_effectors = [n for n in info.limited_effectors if n != name] + ([name] if rotated else [])
+        base = np.asarray(eff.vertices, dtype=np.int64)
+        anchored = driven_positions(eff, poses[name], openings[name])
         scale = self.model.vertex_gravity_scale
         loads = np.asarray(unknown.load_vertices, dtype=np.int64)
         mass = self.vertex_mass[loads] * (1.0 if scale is None else np.asarray(scale, dtype=float)[loads])
         weight = float(np.dot(unknown.axis, float(np.sum(mass)) * np.asarray(self.model.gravity, dtype=float)))
         potential = CompressionPotential(unknown, base, anchored, weight, np.repeat(~fixed, 3))
         fixed[base] = False
-        x_target[base] = x[base] = potential.positions(unknown.start)
+        x_target[base] = potential.positions(unknown.start)
         return potential
 
     def _newton_iterations(self, step: StepTerms, x: np.ndarray, guessed: bool,
