@@ -28,11 +28,15 @@ pad or lies down) is decided by the energy, and a drive step costs one Newton so
 
 Newton system: the base vertices are kept free in the step's assembly (their rows and columns in the
 Newton matrix ``H``) and tied to ``b``: with ``S`` the map ``(x_free, b) -> x`` (``dx_base = -n db``) the
-reduced matrix is ``S^T H S + K`` on ``b``, i.e. the step's constrained matrix (base rows and columns cleared,
-1 on their diagonal), bordered by the column ``u = -H_{free, base} n`` and the corner
-``n^T H_{base, base} n + K`` (:meth:`CompressionPotential.bordered`), factorised in one piece (one column and
-row more than the kinematic step's). ``S^T H S`` is positive semidefinite wherever ``H`` is (a projected
-Hessian), and ``K > 0``: the projected matrix is as safe as the step's. The spring's energy is spread over
+reduced matrix is ``S^T H S + K`` on ``b``, i.e. the kinematic step's constrained matrix ``A`` (base rows and
+columns cleared, 1 on their diagonal) bordered by the column ``u = -H_{free, base} n`` and the corner
+``c = n^T H_{base, base} n + K`` (:meth:`CompressionPotential.border`). The border is eliminated
+(:meth:`CompressionPotential.direction`): ``A`` is factorised as in a kinematic step (its pattern, its cost;
+a dense border column in the factorisation would be ordered anywhere and fill), two solves give ``A^-1 g`` and
+``A^-1 u``, and the Schur complement ``c - u^T A^-1 u`` gives ``db``. The step's last factorisation is then
+the kinematic step's exact Hessian at the accepted positions, which the tangents reuse. ``S^T H S`` is
+positive semidefinite wherever ``H`` is (a projected Hessian), and ``K > 0``: the projected matrix is as safe
+as the step's. The spring's energy is spread over
 the base vertices as a potential of their positions (:meth:`CompressionPotential.energy`, ``gradient``:
 ``b(x)`` the base's mean displacement along ``-n``), so the step's line search and Armijo test read ``E(x,
 b)`` unchanged.
@@ -132,6 +136,7 @@ class CompressionPotential:
         self.tied.reshape(-1, 3)[self.base] = -self.axis
         self.free = np.asarray(free, dtype=bool) & ~self.base_dofs
         self.free.flags.writeable = False
+        self._kept: tuple | None = None  # (indptr, indices, maps) of the last pattern (_maps)
 
     def positions(self, b: float) -> np.ndarray:
         """The base vertices at compression ``b`` (m): ``X_base - b n``, ``(m, 3)`` m."""
@@ -174,48 +179,67 @@ class CompressionPotential:
         d = np.where(self.free, reduced[:-1], 0.0)
         return d + reduced[-1] * self.tied
 
+    def _maps(self, upper: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The pattern of ``upper``'s maps, kept while the pattern is (the assembler's union pattern changes
+        rarely): each entry's row and column, whether it is off the diagonal, and the entries of the base's rows
+        and columns (cleared in :meth:`constrained`) and of its diagonal."""
+        kept = self._kept
+        if kept is None or not (np.array_equal(kept[0], upper.indptr) and np.array_equal(kept[1], upper.indices)):
+            rows = np.repeat(np.arange(upper.shape[0]), np.diff(upper.indptr))
+            cols = upper.indices
+            cleared = self.base_dofs[rows] | self.base_dofs[cols]
+            ones = self.base_dofs[rows] & (rows == cols)
+            kept = self._kept = (upper.indptr.copy(), upper.indices.copy(), (rows, cols, rows != cols, cleared, ones))
+        return kept[2]
+
     def constrained(self, upper: sp.csr_matrix) -> sp.csr_matrix:
         """The kinematic step's constrained matrix from ``upper`` (the upper triangle with the base free): the base's
         rows and columns cleared, 1 on their diagonal; the sparsity pattern kept (a new matrix)."""
-        rows = np.repeat(np.arange(upper.shape[0]), np.diff(upper.indptr))
-        cols = upper.indices
+        _, _, _, cleared, ones = self._maps(upper)
         data = upper.data.copy()
-        data[self.base_dofs[rows] | self.base_dofs[cols]] = 0.0
-        data[self.base_dofs[rows] & (rows == cols)] = 1.0
-        return sp.csr_matrix((data, cols.copy(), upper.indptr.copy()), shape=upper.shape)
+        data[cleared] = 0.0
+        data[ones] = 1.0
+        return sp.csr_matrix((data, upper.indices, upper.indptr), shape=upper.shape)
+
+    def border(self, upper: sp.csr_matrix) -> tuple[sp.csr_matrix, np.ndarray, float]:
+        """The reduced Newton matrix ``S^T H S + K e_b e_b^T`` of ``upper`` (the step's Newton matrix with the base
+        free, upper triangle with the diagonal) in its three parts: the kinematic step's matrix
+        (:meth:`constrained`), the border ``u = (H S_b)`` on its free DoFs ``(3 n,)`` and the corner
+        ``S_b^T H S_b + K`` (N/m)."""
+        rows, cols, off, _, _ = self._maps(upper)
+        tied = self.tied
+        column = np.bincount(rows, upper.data * tied[cols], minlength=upper.shape[0])
+        column += np.bincount(cols[off], (upper.data * tied[rows])[off], minlength=upper.shape[0])
+        corner = float(tied @ column) + self.unknown.curvature
+        return self.constrained(upper), np.where(self.free, column, 0.0), corner
 
     def bordered(self, upper: sp.csr_matrix) -> sp.csr_matrix:
-        """The reduced Newton matrix ``S^T H S + K e_b e_b^T`` (upper triangle, ``(3 n + 1, 3 n + 1)`` CSR with sorted
-        indices) of ``upper``, the step's Newton matrix with the base free (upper triangle with the diagonal):
-        :meth:`constrained` bordered by ``u = H S_b`` on the free DoFs and the corner ``S_b^T H S_b + K``.
+        """The reduced Newton matrix (:meth:`border`) whole: ``(3 n + 1, 3 n + 1)``, the compression last (a dense
+        reference for checks; the solver eliminates the border instead, :meth:`direction`)."""
+        inner, column, corner = self.border(upper)
+        full = inner + sp.triu(inner, k=1).T
+        return sp.bmat([[full, sp.csr_matrix(column[:, None])],
+                        [sp.csr_matrix(column[None, :]), sp.csr_matrix([[corner]])]], format="csr")
 
-        The border column's pattern is every row the pattern couples to a base DoF, so it stays with the
-        pattern of ``upper`` (the linear solver's symbolic analysis is kept while that is)."""
-        n = upper.shape[0]
-        rows = np.repeat(np.arange(n), np.diff(upper.indptr))
-        cols = upper.indices
-        diagonal = rows == cols
-        # H S_b from the upper triangle: each off-diagonal entry acts on both sides
-        tied = self.tied
-        column = np.bincount(rows, upper.data * tied[cols], minlength=n)
-        column += np.bincount(cols[~diagonal], (upper.data * tied[rows])[~diagonal], minlength=n)
-        corner = float(tied @ column) + self.unknown.curvature
-        coupled = np.zeros(n, dtype=bool)
-        coupled[rows[self.base_dofs[cols]]] = True
-        coupled[cols[self.base_dofs[rows]]] = True
-        coupled &= self.free
-        inner = self.constrained(upper)
-        counts = np.diff(inner.indptr) + coupled
-        indptr = np.zeros(n + 2, dtype=np.int64)
-        np.cumsum(counts, out=indptr[1:n + 1])
-        indptr[n + 1] = indptr[n] + 1
-        indices = np.empty(indptr[-1], dtype=np.int64)
-        data = np.empty(indptr[-1])
-        # each row's entries, then its border entry (column n, after every other column: the order stays sorted)
-        shift = np.repeat(indptr[:n] - inner.indptr[:n], np.diff(inner.indptr))
-        slots = np.arange(inner.indptr[-1]) + shift
-        indices[slots], data[slots] = inner.indices, inner.data
-        ends = indptr[1:n + 1][coupled] - 1
-        indices[ends], data[ends] = n, column[coupled]
-        indices[-1], data[-1] = n, corner
-        return sp.csr_matrix((data, indices, indptr), shape=(n + 1, n + 1))
+    def direction(self, solve, g: np.ndarray, column: np.ndarray, corner: float,
+                  definite: bool = True) -> np.ndarray | None:
+        """The Newton update ``S q`` ``(3 n,)`` of the reduced system ``[A u; u^T c] q = -(g_f, g_b)`` by its border's
+        elimination: ``A`` the kinematic step's matrix, factorised (``solve`` its solve), ``db = (u^T A^-1 g_f -
+        g_b) / (c - u^T A^-1 u)``, ``dx_f = -A^-1 (g_f + u db)``; None where the Schur complement ``c - u^T A^-1 u``
+        is not positive (the reduced matrix not positive definite though ``A`` is) and ``definite``.
+
+        Args:
+            solve: ``b -> A^-1 b`` for ``(3 n,)`` vectors (zero on the kinematic step's fixed DoFs).
+            g: the step's gradient ``(3 n,)`` with the base free and :meth:`gradient` in it.
+            column, corner: :meth:`border`'s.
+            definite: ``A`` was factorised as positive definite (a Cholesky factorisation); False: a general one (the
+                Newton direction of an indefinite matrix, whatever the complement's sign).
+        """
+        reduced = self.reduced_gradient(g)
+        g_f, g_b = reduced[:-1], reduced[-1]
+        z_g, z_u = solve(g_f), solve(column)
+        schur = corner - float(column @ z_u)
+        if definite and not schur > 0.0:
+            return None
+        db = (float(column @ z_g) - g_b) / schur
+        return self.update(np.append(-(z_g + db * z_u), db))

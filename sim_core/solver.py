@@ -775,15 +775,15 @@ class NewtonSolver:
         for projection in self._projections():
             ta = time.perf_counter()
             H = self._assemble_hessian(step, x, projection, dynamic_terms)
-            if joint is not None:  # the base tied to the compression: the bordered matrix
-                H = joint.bordered(H)
+            if joint is not None:  # the base tied to the compression: the kinematic step's matrix and its border
+                H, column, corner = joint.border(H)
             tl = time.perf_counter()
             info.time_assembly += tl - ta
             info.factorizations += 1
             if self.linear_solver.factorize(H):
                 d = (-self.linear_solver.solve(g) if joint is None
-                     else joint.update(-self.linear_solver.solve(joint.reduced_gradient(g))))
-                info.projected_iterations += projection != "none"
+                     else joint.direction(self.linear_solver.solve, g, column, corner))
+                info.projected_iterations += projection != "none" and d is not None
             info.time_linear_solve += time.perf_counter() - tl
             if d is not None:
                 break
@@ -791,15 +791,10 @@ class NewtonSolver:
             tl = time.perf_counter()
             info.factorizations += 1
             factorization = self.general_solver()
-            if joint is None:
-                factorization.factorize(self._full_from_upper(H))
-                d = -factorization.solve(g)
-            else:
-                factorization.factorize(sp.csr_matrix(H + sp.triu(H, k=1).T))
-                d = joint.update(-factorization.solve(joint.reduced_gradient(g)))
+            factorization.factorize(self._full_from_upper(H))
+            d = (-factorization.solve(g) if joint is None
+                 else joint.direction(factorization.solve, g, column, corner, definite=False))
             info.time_linear_solve += time.perf_counter() - tl
-        if joint is not None:  # the kinematic step's matrix at x (the record's, inexact: the base's column left out)
-            H = H[:-1, :-1].tocsr()
         d[~step.free] = 0.0
         if not np.all(np.isfinite(d)):
             raise self._diverged(step, f"linear solve produced NaN at iteration {it}")
@@ -892,8 +887,9 @@ class NewtonSolver:
         state_in, dt, x_n = step.state_in, step.dt, step.x_n
         # a step ended by the simplified Newton test or on an applied update has the matrix of the iterate before x:
         # its tangents take the exact Hessian at x (exact_factorization), where the lagged friction's stick
-        # stiffness may differ on the scale of that last update; a joint step's factorisation is the bordered one
-        exact = projection == "none" and not info.simplified_stops and not step.applied and step.compression is None
+        # stiffness may differ on the scale of that last update (a joint step's is the kinematic step's at x, its
+        # border eliminated)
+        exact = projection == "none" and not info.simplified_stops and not step.applied
         fixed, free, x_target, poses = step.fixed, step.free, step.x_target, step.poses
         if step.compression is not None:  # recorded as the kinematic step with the tool at the compression found
             x, fixed, free, x_target, poses = self._compression_result(step, x)

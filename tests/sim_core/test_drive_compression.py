@@ -86,9 +86,14 @@ def test_the_joint_gradient_and_bordered_matrix_are_the_derivatives_of_its_energ
         return solver._energy(step, at, terms, searched), joint.reduced_gradient(g), terms
 
     _, g0, terms = energy_and_gradient(x)
-    bordered = joint.bordered(solver._assemble_hessian(step, x, "none", terms + step.dynamic_terms))
-    full = (bordered + bordered.T - sp.diags(bordered.diagonal())).tocsc()
+    upper = solver._assemble_hessian(step, x, "none", terms + step.dynamic_terms)
+    full = joint.bordered(upper).tocsc()
     direction = spla.spsolve(full, -g0)
+    # the solver's elimination of the border is the reduced system's solution
+    kinematic = joint.constrained(upper)
+    lu = spla.splu((kinematic + sp.triu(kinematic, k=1).T).tocsc())
+    eliminated = joint.direction(lu.solve, solver._gradient(step, x, 1, info)[2], *joint.border(upper)[1:])
+    assert np.allclose(eliminated, joint.update(direction), rtol=0.0, atol=1e-9 * np.max(np.abs(direction)))
     assert abs(g0[-1]) > 1e-3 and abs(direction[-1]) > 1e-7  # the compression moves: a border that can fail
     direction *= 1e-7 / np.max(np.abs(direction))
     shift = joint.update(direction).reshape(-1, 3)
