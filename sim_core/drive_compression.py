@@ -119,6 +119,8 @@ class CompressionPotential:
         free: ``free``, read-only.
         base_dofs: the base vertices' DoFs, ``(3 n,)`` bool.
         tied: ``S_b = dx / db``, ``(3 n,)``: ``-n`` on each base vertex, zero elsewhere.
+        last_border: ``(u, c)`` of :meth:`border` of the matrix the step's solver factorised last (its simplified
+            Newton test solves with them), None before one.
     """
 
     def __init__(self, unknown: CompressionUnknown, base: np.ndarray, anchored: np.ndarray, weight: float,
@@ -137,6 +139,8 @@ class CompressionPotential:
         self.free = np.asarray(free, dtype=bool) & ~self.base_dofs
         self.free.flags.writeable = False
         self._kept: tuple | None = None  # (indptr, indices, maps) of the last pattern (_maps)
+        self.last_border: tuple[np.ndarray, float] | None = None  # the last factorised matrix's (the solver's)
+        self._solved: tuple | None = None  # (column, solve, A^-1 column) of the last direction()
 
     def positions(self, b: float) -> np.ndarray:
         """The base vertices at compression ``b`` (m): ``X_base - b n``, ``(m, 3)`` m."""
@@ -179,37 +183,49 @@ class CompressionPotential:
         d = np.where(self.free, reduced[:-1], 0.0)
         return d + reduced[-1] * self.tied
 
-    def _maps(self, upper: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The pattern of ``upper``'s maps, kept while the pattern is (the assembler's union pattern changes
-        rarely): each entry's row and column, whether it is off the diagonal, and the entries of the base's rows
-        and columns (cleared in :meth:`constrained`) and of its diagonal."""
+    def _maps(self, upper: sp.csr_matrix) -> tuple[np.ndarray, ...]:
+        """Index maps of ``upper``'s pattern, kept while the pattern is (the assembler's union pattern changes
+        rarely): the entries in a base row or column (``touching``), their rows and columns, which of them are off
+        the diagonal; and :meth:`constrained`'s pattern: the entries it keeps (every entry outside the base's rows
+        and columns, and the base's diagonal), its ``indptr`` and ``indices`` (read-only: the linear solver then
+        knows the pattern without comparing it) and the slots of the base's diagonal in it."""
         kept = self._kept
         if kept is None or not (np.array_equal(kept[0], upper.indptr) and np.array_equal(kept[1], upper.indices)):
-            rows = np.repeat(np.arange(upper.shape[0]), np.diff(upper.indptr))
+            n = upper.shape[0]
+            rows = np.repeat(np.arange(n), np.diff(upper.indptr))
             cols = upper.indices
-            cleared = self.base_dofs[rows] | self.base_dofs[cols]
-            ones = self.base_dofs[rows] & (rows == cols)
-            kept = self._kept = (upper.indptr.copy(), upper.indices.copy(), (rows, cols, rows != cols, cleared, ones))
+            touches = self.base_dofs[rows] | self.base_dofs[cols]
+            touching = np.flatnonzero(touches)
+            r, c = rows[touching], cols[touching]
+            keep = np.flatnonzero(~touches | (self.base_dofs[rows] & (rows == cols)))
+            indptr = np.zeros(n + 1, dtype=upper.indptr.dtype)
+            np.cumsum(np.bincount(rows[keep], minlength=n), out=indptr[1:])
+            indices = cols[keep].astype(upper.indices.dtype)
+            ones = np.flatnonzero(self.base_dofs[rows[keep]])
+            for a in (indptr, indices):
+                a.flags.writeable = False
+            kept = self._kept = (upper.indptr.copy(), upper.indices.copy(),
+                                 (touching, r, c, r != c, keep, indptr, indices, ones))
         return kept[2]
 
     def constrained(self, upper: sp.csr_matrix) -> sp.csr_matrix:
         """The kinematic step's constrained matrix from ``upper`` (the upper triangle with the base free): the base's
-        rows and columns cleared, 1 on their diagonal; the sparsity pattern kept (a new matrix)."""
-        _, _, _, cleared, ones = self._maps(upper)
-        data = upper.data.copy()
-        data[cleared] = 0.0
+        rows and columns left out of the pattern, 1 on their diagonal (identity rows, as the assembler makes a fixed
+        DoF's; a new matrix)."""
+        _, _, _, _, keep, indptr, indices, ones = self._maps(upper)
+        data = upper.data[keep]
         data[ones] = 1.0
-        return sp.csr_matrix((data, upper.indices, upper.indptr), shape=upper.shape)
+        return sp.csr_matrix((data, indices, indptr), shape=upper.shape)
 
     def border(self, upper: sp.csr_matrix) -> tuple[sp.csr_matrix, np.ndarray, float]:
         """The reduced Newton matrix ``S^T H S + K e_b e_b^T`` of ``upper`` (the step's Newton matrix with the base
         free, upper triangle with the diagonal) in its three parts: the kinematic step's matrix
         (:meth:`constrained`), the border ``u = (H S_b)`` on its free DoFs ``(3 n,)`` and the corner
         ``S_b^T H S_b + K`` (N/m)."""
-        rows, cols, off, _, _ = self._maps(upper)
-        tied = self.tied
-        column = np.bincount(rows, upper.data * tied[cols], minlength=upper.shape[0])
-        column += np.bincount(cols[off], (upper.data * tied[rows])[off], minlength=upper.shape[0])
+        touching, rows, cols, off = self._maps(upper)[:4]
+        tied, values = self.tied, upper.data[touching]  # H S_b reads the entries in a base row or column only
+        column = np.bincount(rows, values * tied[cols], minlength=upper.shape[0])
+        column += np.bincount(cols[off], (values * tied[rows])[off], minlength=upper.shape[0])
         corner = float(tied @ column) + self.unknown.curvature
         return self.constrained(upper), np.where(self.free, column, 0.0), corner
 
@@ -229,7 +245,9 @@ class CompressionPotential:
         is not positive (the reduced matrix not positive definite though ``A`` is) and ``definite``.
 
         Args:
-            solve: ``b -> A^-1 b`` for ``(3 n,)`` vectors (zero on the kinematic step's fixed DoFs).
+            solve: ``B -> A^-1 B`` for ``(3 n,)`` and ``(3 n, 2)`` right-hand sides (zero on the kinematic step's fixed
+                DoFs); ``A^-1 u`` is kept for the next call with the same ``column`` and ``solve`` (the simplified
+                Newton test's, with the last factorisation).
             g: the step's gradient ``(3 n,)`` with the base free and :meth:`gradient` in it.
             column, corner: :meth:`border`'s.
             definite: ``A`` was factorised as positive definite (a Cholesky factorisation); False: a general one (the
@@ -237,7 +255,12 @@ class CompressionPotential:
         """
         reduced = self.reduced_gradient(g)
         g_f, g_b = reduced[:-1], reduced[-1]
-        z_g, z_u = solve(g_f), solve(column)
+        solved = self._solved
+        if solved is not None and solved[0] is column and solved[1] == solve:  # the same matrix: A^-1 u kept
+            z_g, z_u = solve(g_f), solved[2]
+        else:
+            z_g, z_u = solve(np.column_stack([g_f, column])).T
+            self._solved = (column, solve, z_u)
         schur = corner - float(column @ z_u)
         if definite and not schur > 0.0:
             return None

@@ -519,7 +519,6 @@ class NewtonSolver:
         if compression is not None:  # the spring's energy read with the step's (its Hessian: the border)
             loop_terms.append(compression)
         simplified = (cfg.simplified_newton_check > 0 and not cfg.apply_last_update and not cand_body
-                      and compression is None
                       and all(declares(p, PenaltyContact) for p in cand_contact)
                       and (friction is None or isinstance(friction, LaggedFriction)))
         step = StepTerms(
@@ -702,7 +701,11 @@ class NewtonSolver:
         """Scaled size (m/s) of the simplified Newton correction ``H(x_{k-1})^{-1} g(x_k)`` with the
         last factorisation (``SolverConfig.simplified_newton_check``), and the correction (m, ``(3 n,)``)."""
         tl = time.perf_counter()
-        d_bar = self.linear_solver.solve(g)
+        joint = step.compression
+        if joint is None:
+            d_bar = self.linear_solver.solve(g)
+        else:  # the reduced system's, with the border of the factorised matrix (its Schur complement was positive)
+            d_bar = -joint.direction(self.linear_solver.solve, g, *joint.last_border)
         d_bar[~step.free] = 0.0
         info.time_linear_solve += time.perf_counter() - tl
         return largest_move(d_bar) / step.dt, d_bar
@@ -777,6 +780,7 @@ class NewtonSolver:
             H = self._assemble_hessian(step, x, projection, dynamic_terms)
             if joint is not None:  # the base tied to the compression: the kinematic step's matrix and its border
                 H, column, corner = joint.border(H)
+                joint.last_border = (column, corner)
             tl = time.perf_counter()
             info.time_assembly += tl - ta
             info.factorizations += 1
