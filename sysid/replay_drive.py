@@ -54,11 +54,16 @@ the calibration's whitened RMS the same to 4 digits on latency_s103 and nominal_
 pad (the line continues the held branch of the lift-off's fold)."""
 
 
-DRIVE_SOLVE = "secant"
+DRIVE_SOLVE = "joint"
 """How the replay's drive steps solve for the spring's compression (:data:`sim_core.series_drive.SERIES_SOLVES`):
-the safeguarded secant over whole step solves, or ``"joint"``, the compression an unknown of the step's own Newton
-solve (:mod:`sim_core.drive_compression`); measured against each other in docs/benchmarks_log.md, session 58,
-s58-49drive."""
+``"joint"``, the compression an unknown of the step's own Newton solve (:mod:`sim_core.drive_compression`: one Newton
+solve a step, the lift-off's fold decided by the step's energy), or ``"secant"``, the safeguarded secant over whole
+step solves. Measured (VM, 2 cores shared, docs/benchmarks_log.md, session 58, s58-49drive): one replay of
+nominal_s101 at the scene's values 1,585 Newton iterations and 1,314 factorisations against the secant's 2,046 and
+1,612 (550 evaluations), the same loads within the force tolerance; ``thinshell sysid`` nominal_s101 163 CPU s
+against 185, every fitted value within 2e-5 of the secant's; the calibration of latency_s103 7.79 / 11.07 / 5.77
+(markers / pixels / wrench) against 8.51 / 12.14 / 5.85 (the released card lies down after the lift), of
+nominal_s101 the same to 3 digits."""
 
 
 def first_compression(load: float, slope: float, reach: float, stiffness: float, rate: float) -> float:
