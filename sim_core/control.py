@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from sim_core.drive_compression import CompressionUnknown
 
 
 @dataclass
@@ -21,11 +25,15 @@ class Control:
             converges to the same tolerance from any start, and takes at least one Newton
             correction from the guess (the result is never the guess itself); a start close to the
             solution saves iterations. None: start from the step's initial positions.
+        compression: a series spring on one effector whose compression the step solves for with its
+            positions (:mod:`sim_core.drive_compression`; the effector then ends the step ``b`` behind its
+            target along the spring's axis), or None (every effector at its target).
     """
 
     effector_pose_target: dict[str, np.ndarray] = field(default_factory=dict)
     gripper_target: dict[str, float] = field(default_factory=dict)
     position_guess: np.ndarray | None = None
+    compression: "CompressionUnknown | None" = None
 
     def copy(self) -> "Control":
         """Deep copy (the position guess is shared: it is read, never written)."""
@@ -33,4 +41,5 @@ class Control:
             {k: np.array(v, dtype=float) for k, v in self.effector_pose_target.items()},
             dict(self.gripper_target),
             self.position_guess,
+            self.compression,
         )

@@ -22,6 +22,9 @@ theorem on ``h = 0`` gives
     db = (dF^0 - (c / dt) n . dq^n) / (K - dF/db),   dF/db = -n . sum_load (df of u)  (<= 0),
 
 ``dF^0`` the load's tangent with the compression held (:class:`DriveStep`, :meth:`TangentPropagation.advance`).
+A step whose compression was an unknown of its Newton solve (:mod:`sim_core.drive_compression`) balances the
+base's reaction, ``F + N`` with ``N = n . sum_load [m / dt^2 (x - x^n - dt v^n) + gamma m / dt (x - x^n)]`` the
+load body's inertia and damping (``DriveStep.inertial``): ``dN`` joins ``dF^0`` and ``dN/db`` joins ``dF/db``.
 The tool's position tangent ``dq = -db n`` moves the sensor frame of the observations
 (:func:`observation_sensitivities` ``effector_position``).
 """
@@ -55,6 +58,8 @@ class DriveStep:
         axis: unit axis ``n`` (3,), world, pointing into the contact.
         stiffness: ``K = k_s + c / dt``, N/m (the spring and the damper's spring to the tool's last position).
         damping_rate: ``c / dt``, N/m (0 without a damper).
+        inertial: the load counts the load vertices' inertia and damping beside the contact forces (the joint
+            solve's balance, :mod:`sim_core.drive_compression`).
     """
 
     vertices: np.ndarray
@@ -62,6 +67,7 @@ class DriveStep:
     axis: np.ndarray
     stiffness: float
     damping_rate: float = 0.0
+    inertial: bool = False
 
 
 class TangentPropagation:
@@ -111,6 +117,17 @@ class TangentPropagation:
         return StepLinearization(self.model, record, state, self.elastic, self.contact, self.mass, linear_solver,
                                  factorization=factorization)
 
+    def _inertial_load(self, drive: DriveStep, dt: float, dx: np.ndarray, dxn: np.ndarray | None) -> np.ndarray:
+        """Tangent ``(r,)`` of ``N = n . sum_load [m / dt^2 (x - x^n - dt v^n) + gamma m / dt (x - x^n)]`` (module
+        docstring) for the new positions' tangents ``dx`` ``(n, 3, r)`` and the start's (``self.dx``, ``self.dv``;
+        ``dxn`` None: held, the response to a unit compression)."""
+        loads, axis, gamma = drive.load_vertices, np.asarray(drive.axis, dtype=float), float(self.model.damping)
+        m = self.mass[loads][:, None, None]
+        total = (m / dt ** 2 + gamma * m / dt) * dx[loads]
+        if dxn is not None:
+            total = total - m / dt ** 2 * (dxn[loads] + dt * self.dv[loads]) - gamma * m / dt * dxn[loads]
+        return np.einsum("d,ldr->r", axis, total)
+
     def advance(self, lin: StepLinearization, drive: DriveStep | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """Propagate the tangents through the step of ``lin``.
 
@@ -153,7 +170,11 @@ class TangentPropagation:
 
             slope = float(load(df_unit)[0])  # dF/db <= 0: the load falls as the tool backs off
             pull = -drive.damping_rate * (axis @ self.dq)  # d[(c/dt) (a - q^n) . n]
-            self.db = (load(df) + pull) / (drive.stiffness - slope)
+            held = load(df)
+            if drive.inertial:  # the base's reaction: the load body's inertia and damping too
+                held = held + self._inertial_load(drive, lin.dt, dx_new, dxn)
+                slope += float(self._inertial_load(drive, lin.dt, response, None)[0])
+            self.db = (held + pull) / (drive.stiffness - slope)
             dx_new = dx_new + response * self.db[None, None, :]
             df = df + df_unit * self.db[None, None, :]
             self.dq = -np.outer(axis, self.db)

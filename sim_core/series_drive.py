@@ -41,6 +41,14 @@ contact ~6e5 N/m) a pad's first touch gave loads 0.1 N off a monotone ``F(b)`` a
 evaluation limit, where the chained starts (each a neighbour's solution) converged; at a replay's 1e-7 m/s
 both converge (docs/benchmarks_log.md, session 57, s57-49release).
 
+``solve="joint"`` takes ``b`` as one more unknown of the step's own Newton solve instead
+(:mod:`sim_core.drive_compression`): one implicit step minimises the step's potential and the spring's and
+damper's energies over the positions and ``b`` together, the driven (base) vertices tied rigidly to ``b``.
+Its balance in ``b`` is ``h(b) = 0`` with ``F`` read as the base's reaction, which adds the driven body's
+inertia and mass-proportional damping to the contact load (that module's docstring); the Newton path from
+the start ``b_0`` picks the branch of a fold in ``F(b)`` by the energy, where the secant's bracket picks by
+its starts. One evaluation a step.
+
 An infinitely stiff spring (``k_s = inf``) is the kinematic drive: the effector at the anchor, one
 step, ``b = 0`` (the step taken exactly as without the drive).
 """
@@ -54,6 +62,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim_core.control import Control
+from sim_core.drive_compression import CompressionUnknown
 from sim_core.errors import ConfigError
 
 SERIES_MAX_EVALUATIONS = 12
@@ -62,6 +71,10 @@ shrink it by 2^-10 within that count."""
 
 SERIES_STARTS = ("chained", "line")
 """The evaluations' Newton starts of a drive step (module docstring)."""
+
+SERIES_SOLVES = ("secant", "joint")
+"""How a drive step solves for the spring's compression: the safeguarded secant over whole step solves, or as
+an unknown of the step's own Newton solve (module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -98,17 +111,19 @@ class SeriesSpringDrive:
         offset_tolerance: bracket width (m) at which a step is accepted (> 0).
         max_evaluations: step evaluations allowed per step (>= 2).
         damping: the damper ``c`` on the tool's velocity along the axis, N s/m (>= 0; finite).
-        starts: the evaluations' Newton starts, ``"chained"`` or ``"line"`` (module docstring).
+        starts: the evaluations' Newton starts, ``"chained"`` or ``"line"`` (module docstring; the secant's).
+        solve: ``"secant"`` or ``"joint"`` (:data:`SERIES_SOLVES`; module docstring).
 
     Raises:
         ConfigError: a stiffness that is not positive, tolerances that are not positive, fewer than
-            two evaluations, no load vertices, a damping that is negative or not finite, or unknown starts.
+            two evaluations, no load vertices, a damping that is negative or not finite, unknown starts or
+            an unknown solve.
     """
 
     def __init__(self, effector: str, stiffness: float, load_vertices: np.ndarray,
                  force_tolerance: float = 1.0e-3, offset_tolerance: float = 1.0e-9,
                  max_evaluations: int = SERIES_MAX_EVALUATIONS, damping: float = 0.0,
-                 starts: str = "chained") -> None:
+                 starts: str = "chained", solve: str = "secant") -> None:
         if not stiffness > 0.0:
             raise ConfigError(f"series drive of {effector!r}: stiffness must be > 0 N/m (inf: kinematic), "
                               f"got {stiffness!r}")
@@ -121,6 +136,8 @@ class SeriesSpringDrive:
             raise ConfigError(f"series drive of {effector!r}: max_evaluations must be >= 2, got {max_evaluations!r}")
         if starts not in SERIES_STARTS:
             raise ConfigError(f"series drive of {effector!r}: starts must be one of {SERIES_STARTS}, got {starts!r}")
+        if solve not in SERIES_SOLVES:
+            raise ConfigError(f"series drive of {effector!r}: solve must be one of {SERIES_SOLVES}, got {solve!r}")
         load_vertices = np.asarray(load_vertices, dtype=np.int64).reshape(-1)
         if load_vertices.size == 0:
             raise ConfigError(f"series drive of {effector!r}: no load vertices")
@@ -132,6 +149,7 @@ class SeriesSpringDrive:
         self.max_evaluations = int(max_evaluations)
         self.damping = float(damping)
         self.starts = starts
+        self.solve = solve
 
     @property
     def kinematic(self) -> bool:
@@ -153,8 +171,9 @@ class SeriesSpringDrive:
             sim: the :class:`~sim_core.simulation.Simulation`; its state is replaced by the step's.
             control: the step's control; ``control.effector_pose_target[effector]`` is the anchor pose.
             axis: unit axis ``n`` (3,), world, pointing into the contact.
-            start: first compression tried, m (e.g. the previous step's).
-            contact_slope: guess of ``-dF/db`` (N/m, >= 0) for the first secant step.
+            start: first compression tried, m (e.g. the previous step's); the joint solve's start.
+            contact_slope: guess of ``-dF/db`` (N/m, >= 0) for the first secant step (returned as it is by the
+                joint solve).
 
         The damper reads the tool's position at the step's start from ``sim.state.effector_pose``.
 
@@ -172,11 +191,20 @@ class SeriesSpringDrive:
             sim.step(control)
             f = self.load(sim.state, axis)
             return SeriesDriveStep(0.0, f, 0.0, 1, True, 0.0)
-        load = CompressionLoad(self, sim, control, axis)
-        anchor, state0, k, pull = load.anchor, load.state0, self.stiffness, 0.0
+        anchor = np.asarray(control.effector_pose_target[self.effector], dtype=float)
+        k, pull, rate, reach = self.stiffness, 0.0, 0.0, 0.0
         if self.damping > 0.0:  # the damper as a spring c / dt to the tool's last position (module docstring)
-            previous = np.asarray(state0.effector_pose[self.effector], dtype=float)[:3]
-            k, pull = k + self.damping / sim.dt, self.damping / sim.dt * float(np.dot(anchor[:3] - previous, axis))
+            previous = np.asarray(sim.state.effector_pose[self.effector], dtype=float)[:3]
+            rate, reach = self.damping / sim.dt, float(np.dot(anchor[:3] - previous, axis))
+            k, pull = k + rate, rate * reach
+        if self.solve == "joint":
+            unknown = CompressionUnknown(self.effector, axis, self.stiffness, rate, reach, float(start),
+                                         self.load_vertices)
+            sim.step(dataclasses.replace(control, compression=unknown))
+            b = float(np.dot(anchor[:3] - np.asarray(sim.state.effector_pose[self.effector], dtype=float)[:3], axis))
+            f = self.load(sim.state, axis)
+            return SeriesDriveStep(b, f, f - k * b + pull, 1, True, max(float(contact_slope), 0.0))
+        load = CompressionLoad(self, sim, control, axis)
 
         def h(b: float) -> tuple[float, float]:
             f = load(b)

@@ -33,6 +33,7 @@ from sim_core.candidates.hook import CandidateHook, StepHook, checked_hook
 from sim_core.carried_start import carry_driven_bodies
 from sim_core.contact_set import ContactSet, active_contacts, same_active_contacts
 from sim_core.control import Control
+from sim_core.drive_compression import CompressionPotential
 from sim_core.fixed_point import FixedPoint, copy_state_into, same_array, same_arrays, same_resting_state
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
@@ -205,10 +206,11 @@ class NewtonSolver:
                 raise ConfigError(f"control position_guess must be finite positions of shape {state_in.x.shape}, "
                                   f"got shape {guess.shape}" + ("" if guess.shape != state_in.x.shape else " with NaN/inf"))
         t0 = time.perf_counter()
-        sleeping = self.config.sleeping and guess is None and self.step_hook is None
+        joint = control.compression is not None  # a series spring's compression among the unknowns
+        sleeping = self.config.sleeping and guess is None and self.step_hook is None and not joint
         woken = sorted(set(self._woken_by_reset) | set([] if sleeping else self._sleep.wake_all()))
         self._woken_by_reset = ()
-        repeat = self.config.repeat_fixed_points and guess is None and self.step_hook is None
+        repeat = self.config.repeat_fixed_points and guess is None and self.step_hook is None and not joint
         if repeat and not woken:
             # a fixed point of this sleeping set (its Dirichlet mask holds them) from bitwise this state
             # and inputs: the wake test passed when it was solved and would pass again
@@ -254,7 +256,8 @@ class NewtonSolver:
             try:
                 info = self._step_substeps(state_in, state_out, control, dt, n_sub, guess if n_sub == 1 else None)
             except SimulationDivergedError as err:
-                if retries < self.config.dt_halvings_on_failure:
+                # no substeps with a compression among the unknowns: its damper and reach are the step's
+                if retries < self.config.dt_halvings_on_failure and control.compression is None:
                     retries += 1
                     continue
                 if retries == 0:
@@ -459,12 +462,18 @@ class NewtonSolver:
         asleep = frozenset(self._sleep.bodies)
         if asleep:
             fixed = fixed | self._sleep.mask  # held at their positions (x_target is state_in.x there)
+        compression, carried_poses = None, poses
+        if control.compression is not None:  # the base kept free, tied to the compression (sim_core.drive_compression)
+            compression = self._compression(state_in, control, fixed, x_target, poses, openings, info)
+            carried_poses = compression.start_poses(poses)
         (free, fixed_dofs), x_n = self._free_dofs(fixed), state_in.x
         x = x_n.copy() if guess is None else guess.copy()
         if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
-            carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
-                                openings, fixed, x_target, x)
+            carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening,
+                                carried_poses, openings, fixed, x_target, x)
         np.copyto(x, x_target, where=fixed_dofs)  # the fixed vertices at their targets (one pass, no gather)
+        if compression is not None:  # the base at the start compression
+            x[compression.base] = x_target[compression.base]
         x_hat, mass = x_n + dt * state_in.v, self.vertex_mass
         gravity_mass = mass if model.vertex_gravity_scale is None else mass * model.vertex_gravity_scale
         fixed_terms = [InertiaPotential(mass, x_hat, dt), GravityPotential(gravity_mass, model.gravity)]
@@ -507,6 +516,8 @@ class NewtonSolver:
         # whose switches the test compares (the library's, a candidate's adhesion) and lagged friction (a
         # candidate's stiction may switch within a step; a body term is not compared); not where the last update
         # is applied (SolverConfig.apply_last_update: the correction of the previous matrix is not second order)
+        if compression is not None:  # the spring's energy read with the step's (its Hessian: the border)
+            loop_terms.append(compression)
         simplified = (cfg.simplified_newton_check > 0 and not cfg.apply_last_update and not cand_body
                       and all(declares(p, PenaltyContact) for p in cand_contact)
                       and (friction is None or isinstance(friction, LaggedFriction)))
@@ -516,8 +527,41 @@ class NewtonSolver:
             loop_terms=loop_terms, friction=friction, cand_contact=cand_contact,
             dynamic_terms=([friction] if friction is not None else []) + cand_dynamic, memory=memory,
             max_displacement=cfg.max_displacement or (0.5 * model.contact.eps + 2e-3), simplified=simplified,
+            compression=compression,
         )
         return step, x
+
+    def _compression(self, state_in: State, control: Control, fixed: np.ndarray, x_target: np.ndarray,
+                     poses: dict, openings: dict, info: StepInfo) -> CompressionPotential:
+        """The step's :class:`~sim_core.drive_compression.CompressionPotential` of ``control.compression``: its
+        effector's vertices (the base) freed in ``fixed`` and at the start compression in ``x_target``; the
+        effector's pose in ``poses`` its anchor (all written). The anchor is the target with the
+        effector's rotation limit only: the tool ends the step where the spring's balance puts it, and the
+        anchor runs ahead of it by the compression (``b = F / k_s``: a few mm for newtons on an arm's spring,
+        which the per-step translation limit of a kinematic effector would clip).
+
+        Raises:
+            ConfigError: an unknown effector.
+        """
+        unknown = control.compression
+        name = unknown.effector
+        if name not in self.model.effectors or name not in control.effector_pose_target:
+            raise ConfigError(f"control compression: effector {name!r} is not among the control's targets "
+                              f"{list(control.effector_pose_target)} and the model's {list(self.model.effectors)}")
+        eff = self.model.effectors[name]
+        poses[name], rotated = limit_pose_step(state_in.effector_pose[name], control.effector_pose_target[name],
+                                               np.inf, eff.max_rotation_per_step)
+        info.limited_effectors = [n for n in info.limited_effectors if n != name] + ([name] if rotated else [])
+        base = np.asarray(eff.vertices, dtype=np.int64)
+        anchored = driven_positions(eff, poses[name], openings[name])
+        scale = self.model.vertex_gravity_scale
+        loads = np.asarray(unknown.load_vertices, dtype=np.int64)
+        mass = self.vertex_mass[loads] * (1.0 if scale is None else np.asarray(scale, dtype=float)[loads])
+        weight = float(np.dot(unknown.axis, float(np.sum(mass)) * np.asarray(self.model.gravity, dtype=float)))
+        potential = CompressionPotential(unknown, base, anchored, weight, np.repeat(~fixed, 3))
+        fixed[base] = False
+        x_target[base] = potential.positions(unknown.start)
+        return potential
 
     def _newton_iterations(self, step: StepTerms, x: np.ndarray, guessed: bool,
                            info: StepInfo) -> tuple[np.ndarray, sp.csr_matrix, str, LinearSolver | SymmetricSolver]:
@@ -560,7 +604,8 @@ class NewtonSolver:
             step_max = largest_move(d)
             residual = step_max / dt
             history.append(residual)
-            reason = stop_reason(self.config, residual, g, history)
+            reason = stop_reason(self.config, residual,
+                                 g if step.compression is None else step.compression.reduced_gradient(g), history)
             if reason is not None:
                 if cfg.apply_last_update and reason in STRICT_STOPS:
                     # the update just solved for, taken in full (no line search: a step this small is in the
@@ -656,7 +701,11 @@ class NewtonSolver:
         """Scaled size (m/s) of the simplified Newton correction ``H(x_{k-1})^{-1} g(x_k)`` with the
         last factorisation (``SolverConfig.simplified_newton_check``), and the correction (m, ``(3 n,)``)."""
         tl = time.perf_counter()
-        d_bar = self.linear_solver.solve(g)
+        joint = step.compression
+        if joint is None:
+            d_bar = self.linear_solver.solve(g)
+        else:  # the reduced system's, with the border of the factorised matrix (its Schur complement was positive)
+            d_bar = -joint.direction(self.linear_solver.solve, g, *joint.last_border)
         d_bar[~step.free] = 0.0
         info.time_linear_solve += time.perf_counter() - tl
         return largest_move(d_bar) / step.dt, d_bar
@@ -704,6 +753,8 @@ class NewtonSolver:
         if step.fused is not None:  # its values are in the slots of the Newton loop's static pattern
             assembler.use_pattern(step.fused.pattern)
         H = self._assemble_hessian(step, x, "none", self._last_contact_terms + step.dynamic_terms, assembler)
+        if step.compression is not None:  # the kinematic step's matrix: the base held
+            H = step.compression.constrained(H)
         self._refactorised = solver if solver.factorize(H) else None
         return self._refactorised
 
@@ -723,15 +774,20 @@ class NewtonSolver:
         dynamic_terms = contact_terms + step.dynamic_terms
         d = None
         factorization = self.linear_solver
+        joint = step.compression
         for projection in self._projections():
             ta = time.perf_counter()
             H = self._assemble_hessian(step, x, projection, dynamic_terms)
+            if joint is not None:  # the base tied to the compression: the kinematic step's matrix and its border
+                H, column, corner = joint.border(H)
+                joint.last_border = (column, corner)
             tl = time.perf_counter()
             info.time_assembly += tl - ta
             info.factorizations += 1
             if self.linear_solver.factorize(H):
-                d = -self.linear_solver.solve(g)
-                info.projected_iterations += projection != "none"
+                d = (-self.linear_solver.solve(g) if joint is None
+                     else joint.direction(self.linear_solver.solve, g, column, corner))
+                info.projected_iterations += projection != "none" and d is not None
             info.time_linear_solve += time.perf_counter() - tl
             if d is not None:
                 break
@@ -740,7 +796,8 @@ class NewtonSolver:
             info.factorizations += 1
             factorization = self.general_solver()
             factorization.factorize(self._full_from_upper(H))
-            d = -factorization.solve(g)
+            d = (-factorization.solve(g) if joint is None
+                 else joint.direction(factorization.solve, g, column, corner, definite=False))
             info.time_linear_solve += time.perf_counter() - tl
         d[~step.free] = 0.0
         if not np.all(np.isfinite(d)):
@@ -804,6 +861,24 @@ class NewtonSolver:
         return SimulationDivergedError(f"step {state.step_index} (t = {state.t:.6g} s): {what}",
                                        step_index=state.step_index, t=state.t)
 
+    @staticmethod
+    def _compression_result(step: StepTerms, x: np.ndarray) -> tuple:
+        """A joint step's result as the kinematic step's with the tool at the compression ``b`` of ``x``: ``(x,
+        fixed, free, x_target, poses)`` with the base rigidly at ``X_base - b n`` (new arrays; round-off of the
+        tied updates removed), held, and the effector's pose ``b`` behind its target along the axis."""
+        joint = step.compression
+        b = joint.compression(x)
+        x = x.copy()
+        x[joint.base] = joint.positions(b)
+        fixed = step.fixed.copy()
+        fixed[joint.base] = True
+        x_target = step.x_target.copy()
+        x_target[joint.base] = x[joint.base]
+        name = joint.unknown.effector
+        pose = np.array(step.poses[name], dtype=float)
+        pose[:3] -= b * joint.axis
+        return x, fixed, joint.free, x_target, {**step.poses, name: pose}
+
     def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
         """:func:`~sim_core.step_terms.contact_force` of the step's contact ``terms`` at its result ``x``."""
         return contact_force(x, terms)
@@ -816,29 +891,33 @@ class NewtonSolver:
         state_in, dt, x_n = step.state_in, step.dt, step.x_n
         # a step ended by the simplified Newton test or on an applied update has the matrix of the iterate before x:
         # its tangents take the exact Hessian at x (exact_factorization), where the lagged friction's stick
-        # stiffness may differ on the scale of that last update
+        # stiffness may differ on the scale of that last update (a joint step's is the kinematic step's at x, its
+        # border eliminated)
         exact = projection == "none" and not info.simplified_stops and not step.applied
+        fixed, free, x_target, poses = step.fixed, step.free, step.x_target, step.poses
+        if step.compression is not None:  # recorded as the kinematic step with the tool at the compression found
+            x, fixed, free, x_target, poses = self._compression_result(step, x)
         contact_terms = self.contact.potentials(x, x_n, step.memory)
         self._check_asleep_unreached(contact_terms, x)
         self._last_contact_terms = contact_terms
-        self.last_free_mask = step.free
+        self.last_free_mask = free
         self.last_factorization = factorization if exact else None
         self._inexact_step, self._refactorised = (None if exact else (step, x)), None
         info.energy = (self._energy(step, x, contact_terms, self.contact.search_position) + self._sleep.energy
                        + (self.contact.held_friction_energy if self._sleep.bodies else 0.0))
         x_prev, v_prev, x_kept = (a if FrozenPositionsKey.holds(a) else a.copy() for a in (x_n, state_in.v, x))
         self.last_record = StepRecord(
-            dt=dt, x_prev=x_prev, v_prev=v_prev, x=x_kept, fixed=step.fixed, x_target=step.x_target,
-            effector_pose={k: np.array(v) for k, v in step.poses.items()}, gripper_opening=dict(step.openings),
+            dt=dt, x_prev=x_prev, v_prev=v_prev, x=x_kept, fixed=fixed, x_target=x_target,
+            effector_pose={k: np.array(v) for k, v in poses.items()}, gripper_opening=dict(step.openings),
             limited_effectors=list(info.limited_effectors), terms=step.fixed_terms + contact_terms,
             hinge_theta_bar={k: np.array(v) for k, v in state_in.hinge_theta_bar.items()}, hessian_upper=H,
-            free_dofs=step.free, hessian_exact=exact, asleep=self._sleep.names, expansion=self._full_from_upper,
+            free_dofs=free, hessian_exact=exact, asleep=self._sleep.names, expansion=self._full_from_upper,
         )
         state_out.t = state_in.t + dt
         state_out.step_index = state_in.step_index + 1
         state_out.x = x
         state_out.v = (x - x_n) / dt
-        state_out.effector_pose = {k: np.array(v) for k, v in step.poses.items()}
+        state_out.effector_pose = {k: np.array(v) for k, v in poses.items()}
         state_out.gripper_opening = dict(step.openings)
         state_out.contact_force = self._contact_force(
             x, contact_terms + ([step.friction] if step.friction is not None else []) + step.cand_contact)

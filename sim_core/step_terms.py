@@ -48,6 +48,9 @@ class StepTerms:
             iterate (the ordinary or simplified correction), None when the step ended otherwise.
         applied: the step ended at its last iterate plus ``last_update`` (``SolverConfig.apply_last_update``), so
             the last Newton matrix is that of the iterate before the result, not the result's.
+        compression: a series spring's compression among the step's unknowns
+            (:class:`~sim_core.drive_compression.CompressionPotential`: its base vertices free in ``fixed`` and
+            ``free``, tied to it), or None.
     """
 
     state_in: State
@@ -73,6 +76,7 @@ class StepTerms:
     loop_energy: float = 0.0
     last_update: np.ndarray | None = None
     applied: bool = False
+    compression: object | None = None
 
 
 class FreeDofs:

@@ -54,6 +54,18 @@ the calibration's whitened RMS the same to 4 digits on latency_s103 and nominal_
 pad (the line continues the held branch of the lift-off's fold)."""
 
 
+DRIVE_SOLVE = "joint"
+"""How the replay's drive steps solve for the spring's compression (:data:`sim_core.series_drive.SERIES_SOLVES`):
+``"joint"``, the compression an unknown of the step's own Newton solve (:mod:`sim_core.drive_compression`: one Newton
+solve a step, the lift-off's fold decided by the step's energy), or ``"secant"``, the safeguarded secant over whole
+step solves. Measured (VM, 2 cores shared, docs/benchmarks_log.md, session 58, s58-49drive): one replay of
+nominal_s101 at the scene's values 1,585 Newton iterations and 1,314 factorisations against the secant's 2,046 and
+1,612 (550 evaluations), the same loads within the force tolerance; ``thinshell sysid`` nominal_s101 163 CPU s
+against 185, every fitted value within 2e-5 of the secant's; the calibration of latency_s103 7.79 / 11.07 / 5.77
+(markers / pixels / wrench) against 8.51 / 12.14 / 5.85 (the released card lies down after the lift), of
+nominal_s101 the same to 3 digits."""
+
+
 def first_compression(load: float, slope: float, reach: float, stiffness: float, rate: float) -> float:
     """The first compression a drive step tries (m): the root of the step's spring balance with the load linear
     in the tool's advance.
@@ -154,7 +166,7 @@ class ReplayDrive:
         gel = sim.model.bodies[sim.model.sensors[model.sensor].gel_body].vertices
         tolerance = DRIVE_FORCE_TOLERANCE * float(model.sigma["wrench"][2]) if "wrench" in model.sigma else 1.0e-3
         spring = SeriesSpringDrive(model.effector, model.drive_stiffness, gel, force_tolerance=tolerance,
-                                   damping=model.drive_damping, starts=DRIVE_STARTS)
+                                   damping=model.drive_damping, starts=DRIVE_STARTS, solve=DRIVE_SOLVE)
         return cls(spring, model.controls, model.commands, model.sensor_normal)
 
     def start(self) -> None:
@@ -245,7 +257,8 @@ def drive_sensitivities(model, sim, params: Sequence[str]
         if factorization is None:
             fallback = fallback or sim.solver.general_solver()
         lin = tangents.linearization(record, states[-1], fallback, factorization=factorization)
-        step = DriveStep(vertices, drive.spring.load_vertices, drive.last_axis, drive.spring.stiffness + rate, rate)
+        step = DriveStep(vertices, drive.spring.load_vertices, drive.last_axis, drive.spring.stiffness + rate, rate,
+                         inertial=drive.spring.solve == "joint")
         dX[k], dF[k] = tangents.advance(lin, step)
         dQ[k] = tangents.dq
         states.append(sim.state.copy())

@@ -80,7 +80,10 @@ def test_a_replay_through_the_reference_arm_takes_one_evaluation_a_step_out_of_c
     fitted arm (3,000 N/m, 34 N s/m): every step without load on the gel takes one evaluation (the damper's lag at
     once), and the replayed load is the one of the same replay with every drive step solved 100x tighter, within the
     drive's force tolerance (0.005 noise levels, 1 mN): the first guesses move no answer. (The slide begins at
-    1.55 s: 1.2 s holds every kind of step the claim is about, free, pressing and held.)"""
+    1.55 s: 1.2 s holds every kind of step the claim is about, free, pressing and held.) The secant's claim: the
+    replay's drive solved by the secant whatever ``DRIVE_SOLVE`` says (a joint step is one Newton solve from any
+    first compression, tests/sim_core/test_drive_compression.py)."""
+    monkeypatch.setattr(replay_drive, "DRIVE_SOLVE", "secant")
     model = ObservationModel(load_evidence(reference_bag("nominal_s101")), dt=0.01, t_max=1.2,
                              simulation={"gel_resolution": [5, 4, 2]}, arch="cpu")
     fit = fit_drive(model)

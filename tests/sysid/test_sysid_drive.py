@@ -51,9 +51,9 @@ def _model(bag, t_max: float | None = None) -> ObservationModel:
 
 def test_the_jacobian_through_the_drive_is_the_derivative_of_the_drive_replay(arm_bag, monkeypatch):
     """Analytic Jacobian through the drive against central differences of replays whose drive steps are solved
-    to 1e-6 N (a finite-difference column of the default 0.5-sigma tolerance measures that tolerance over the
-    step instead). Over the whole recording: at the step where contact begins the spring's balance has a kink
-    (the secant ends on its evaluation limit there), and a difference across it is not the one-sided tangent. The wrench column of the gel modulus is the drive's own: a kinematic tangent (compression
+    jointly with the step (``DRIVE_SOLVE``'s default; a secant replay's to 1e-6 N: a finite-difference column of the
+    default 0.5-sigma tolerance measures that tolerance over the step instead). Over the whole recording: at the step
+    where contact begins the spring's balance has a kink, and a difference across it is not the one-sided tangent. The wrench column of the gel modulus is the drive's own: a kinematic tangent (compression
     held) is far from it, since the arm, not the gel, sets most of the load."""
     monkeypatch.setattr(replay_drive, "DRIVE_FORCE_TOLERANCE", 5e-6)  # in noise levels of the normal force
     model = _model(arm_bag)
