@@ -156,8 +156,6 @@ def test_a_lift_fold_reads_the_concealed_shear_compliance_of_the_tack_back(lift_
     normal_only = dict(layer.profile)
     assert layer.rms < 0.5 * max(normal_only.values())
     assert decision.summary()["layer_rounds"] == [[layer.stiffness, layer.log_sigma]]
-    kept = decision.fit_row_mask()["sheet_points"]  # the joint fit leaves the carried card's rows to the layer
-    assert kept.shape == (model.data("sheet_points").shape[0],) and int((~kept).sum()) == decision.carried_rows > 0
     print(decision.why, layer.profile)
 
 
