@@ -76,13 +76,7 @@ fits stop after 0-2 iterations from every start: at the peel the folded card is 
 bonds let go at once, so friction on that contact holds the released card or not, a threshold (friction 0.6347 at the
 -30 % start's first step) on whose far side the cost is 126x, and the friction lands +19 / +30 % off outside its
 2-sigma interval from the scene / +30 % start (docs/benchmarks_log.md, session 57, s57-49lift): so the tack stays
-opt-in. On the merged session-57 main (the drive replay's first iterate and evaluation starts changed under it) that
-cliff is not on the fit's path (session 58, s58-49peel): along the friction line at the -30 % start's calibrated point
-the released card comes down on both sides of 0.6347 (sheet points' sum of squares 1.3246e7 / 1.3247e7), and the -30 %
-start's fit with the stop rules off steps through the release (friction 0.56 -> 0.87 -> 0.93 -> 0.71 -> 0.92, cost
-2.07-2.21e5 throughout, no 126x step): bending +5.6 % and modulus -7.9 % come back covered, the gel-card friction lands
-+25 % off outside its robust 2-sigma interval, as from the other starts in session 57. What keeps the tack opt-in is
-that friction, not the release.
+opt-in.
 """
 
 from __future__ import annotations
@@ -128,19 +122,6 @@ class TackDecision:
     layer: "ShearLayer | None" = None
     rounds: tuple[tuple[float, float], ...] = ()
     margin: "TackMargin | None" = None
-    carried: np.ndarray | None = None
-
-    def fit_row_mask(self) -> dict[str, np.ndarray] | None:
-        """The sheet-point rows the joint fit leaves out where the layer is on: the carried card's
-        (:attr:`carried`, bool ``(n,)`` over the recorded sheet-point rows; :func:`carried_rows`). There the layer, not
-        Coulomb friction, holds the bonded patch, and the card's shape is the layer's form error (whitened RMS 8-12
-        in nominal_s109's hold against ~1 before the tack): on nominal_s109 those rows alone pulled the gel-card friction
-        to +25 % (sum of squares 1.36e7 at the engine's 0.734 against 1.14e7 at 0.919, the hold 3.0-3.84 s; the markers
-        and wrench, where friction acts on the gel, prefer 0.734: docs/benchmarks_log.md, session 58). The layer's
-        ``k_t`` is read from these rows by the decision (:func:`fit_shear_layer`) before the fit. None: no layer."""
-        if self.carried is None or not (self.params and SHEAR_STIFFNESS_SETTING in self.params):
-            return None
-        return {"sheet_points": ~np.asarray(self.carried, dtype=bool)}
 
     def summary(self) -> dict[str, Any]:
         """fit.json's ``diagnostics.tack`` (``layer_rounds``: ``(k_t, sigma of ln k_t)`` of the layer's search at the
@@ -273,7 +254,7 @@ def nominal_tack(model, params: dict[str, float] | None = None, shear_layer: boo
     model.set_nominal(values)
     on = SHEAR_STIFFNESS_SETTING in values
     return TackDecision(True, why, int(rows.sum()), float(values[ADHESION_PARAMETER]), float(tack["peel_s"]), values,
-                        layer, ((layer.stiffness, layer.log_sigma),) if on else (), margin, rows)
+                        layer, ((layer.stiffness, layer.log_sigma),) if on else (), margin)
 
 
 TACK_PARAMETERS = 1
