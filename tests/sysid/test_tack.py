@@ -101,8 +101,8 @@ def test_a_press_slide_gets_no_tack(tmp_path):
 
 def test_thinshell_sysid_takes_the_tack_where_asked():
     """``thinshell sysid --tack`` lets the recording decide the tack (``FitOptions.tack``: its carried rows and the
-    :func:`sysid.tack.tack_margin` rule); off by default (``--no-tack`` the same), where a lift's fit stops at the
-    released card's stick / slip threshold (docs/benchmarks_log.md, session 57)."""
+    :func:`sysid.tack.tack_margin` rule); off by default (``--no-tack`` the same), where a lift's fit reports the gel-card
+    friction 19-30 % off outside its interval (docs/benchmarks_log.md, sessions 57-58)."""
     from sysid.cli import build_parser, fit_options
     from sysid.fit_recording import FitOptions
 
@@ -180,6 +180,24 @@ def test_the_layer_fitted_jointly_with_the_bending_from_starts_off_comes_back(li
     assert d == pytest.approx(TRUE_PARAMS[bending], rel=0.05)
     assert abs(np.log(k / K_TRUE)) < 0.5 * abs(np.log(1.8 / K_TRUE))
     assert abs(k - K_TRUE) < 2 * result.sigma_robust[SHEAR_STIFFNESS_SETTING]
+
+
+def test_the_gel_card_friction_fitted_across_the_release_of_a_folded_card_comes_back(lift_fold):
+    """The gel-card friction fitted alone (``k_t`` and the materials held at the truth) from a start 30 % low on the
+    lift-and-fold, whose card is let go at the recorded peel while the gel holds still: the fit's steps cross the
+    release (the sheet points after the peel are in its cost) and land within 10 % of the truth, inside the robust
+    2-sigma interval. On nominal_s109 session 57 measured a 126x cost cliff along the friction line at the release
+    (the released card held on the gel face by friction or not) that stopped every fit at its start; on the merged
+    main the -30 % start's fit with the stop rules off steps through it (docs/benchmarks_log.md, session 58)."""
+    from sysid.fit import fit
+
+    model, _ = lift_fold
+    name = "friction.gel_sheet"
+    truth = TRUE_PARAMS[name]
+    result = fit(model, [name], jacobian="sensitivity", warm_start=False, initial={name: 0.7 * truth}, max_replays=6)
+    assert all(np.isfinite(ev.cost) for ev in result.history)
+    assert result.values[name] == pytest.approx(truth, rel=0.10), result.values
+    assert abs(result.values[name] - truth) < 2 * result.sigma_robust[name]
 
 
 def test_rows_per_datum_is_the_residual_correlation_time():
