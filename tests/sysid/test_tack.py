@@ -182,24 +182,6 @@ def test_the_layer_fitted_jointly_with_the_bending_from_starts_off_comes_back(li
     assert abs(k - K_TRUE) < 2 * result.sigma_robust[SHEAR_STIFFNESS_SETTING]
 
 
-def test_the_gel_card_friction_fitted_across_the_release_of_a_folded_card_comes_back(lift_fold):
-    """The gel-card friction fitted alone (``k_t`` and the materials held at the truth) from a start 30 % low on the
-    lift-and-fold, whose card is let go at the recorded peel while the gel holds still: the fit's steps cross the
-    release (the sheet points after the peel are in its cost) and land within 10 % of the truth, inside the robust
-    2-sigma interval. On nominal_s109 session 57 measured a 126x cost cliff along the friction line at the release
-    (the released card held on the gel face by friction or not) that stopped every fit at its start; on the merged
-    main the -30 % start's fit with the stop rules off steps through it (docs/benchmarks_log.md, session 58)."""
-    from sysid.fit import fit
-
-    model, _ = lift_fold
-    name = "friction.gel_sheet"
-    truth = TRUE_PARAMS[name]
-    result = fit(model, [name], jacobian="sensitivity", warm_start=False, initial={name: 0.7 * truth}, max_replays=6)
-    assert all(np.isfinite(ev.cost) for ev in result.history)
-    assert result.values[name] == pytest.approx(truth, rel=0.10), result.values
-    assert abs(result.values[name] - truth) < 2 * result.sigma_robust[name]
-
-
 def test_rows_per_datum_is_the_residual_correlation_time():
     """An AR(1) residual of correlation 0.8 a row carries one datum in (1 + 0.8) / (1 - 0.8) = 9 rows; a white one
     in 1."""
