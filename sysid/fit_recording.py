@@ -135,9 +135,9 @@ class FitOptions:
             by :func:`sysid.tack.tack_margin`); nominal_s109's sheet points at the engine's values whitened RMS 82
             without it, 8.4 with the layer (docs/benchmarks_log.md, sessions 56-57). False (the default): no tack,
             a lift's card stays on the table in every replay. Not the default: on nominal_s109 the fit with the tack
-            stops after 0-2 iterations at the released card's stick / slip threshold and reports the friction
-            +19 / +30 % off the engine's value outside its 2-sigma interval from the scene / +30 % start
-            (docs/benchmarks_log.md, session 57, s57-49lift), an interval a user could not trust.
+            reports the gel-card friction +19 / +30 / +25 % off the engine's value outside its 2-sigma interval from
+            the scene / +30 / -30 % start (docs/benchmarks_log.md, sessions 57 and 58), an interval a user could not
+            trust.
         hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely

@@ -76,7 +76,15 @@ fits stop after 0-2 iterations from every start: at the peel the folded card is 
 bonds let go at once, so friction on that contact holds the released card or not, a threshold (friction 0.6347 at the
 -30 % start's first step) on whose far side the cost is 126x, and the friction lands +19 / +30 % off outside its
 2-sigma interval from the scene / +30 % start (docs/benchmarks_log.md, session 57, s57-49lift): so the tack stays
-opt-in.
+opt-in. On the merged session-57 main (the drive replay's first iterate and evaluation starts changed under it; not
+bisected) that cliff is not on the fit's path (session 58, s58-49peel): along the friction line at the -30 % start's
+calibrated point the released card comes down on both sides of 0.6347 (sheet points' sum of squares 1.3246e7 /
+1.3247e7), and the -30 % start's fit with the stop rules off steps through the release (friction 0.56 -> 0.87 -> 0.93 ->
+0.71 -> 0.92, cost 2.07-2.21e5, no 126x step): bending +5.6 % and modulus -7.9 % come back covered, the gel-card
+friction lands +25 % off outside its robust 2-sigma interval, as from the other starts in session 57. What keeps the
+tack opt-in is that friction, not the release. At that end the sheet points prefer the high friction (in the hold,
+3.0-3.84 s, and the fall), the markers the engine's; left out of the fit, the carried card's rows let the friction run
+to 1.30 (+76 %, NOT IDENTIFIED): the friction's pull is not the carried rows alone (docs/benchmarks_log.md, session 58).
 """
 
 from __future__ import annotations

@@ -101,8 +101,8 @@ def test_a_press_slide_gets_no_tack(tmp_path):
 
 def test_thinshell_sysid_takes_the_tack_where_asked():
     """``thinshell sysid --tack`` lets the recording decide the tack (``FitOptions.tack``: its carried rows and the
-    :func:`sysid.tack.tack_margin` rule); off by default (``--no-tack`` the same), where a lift's fit stops at the
-    released card's stick / slip threshold (docs/benchmarks_log.md, session 57)."""
+    :func:`sysid.tack.tack_margin` rule); off by default (``--no-tack`` the same), where a lift's fit reports the
+    gel-card friction 19-30 % off outside its interval (docs/benchmarks_log.md, sessions 57-58)."""
     from sysid.cli import build_parser, fit_options
     from sysid.fit_recording import FitOptions
 
