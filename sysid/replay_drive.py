@@ -175,6 +175,8 @@ class ReplayDrive:
         self.last_axis: np.ndarray | None = None
         self.evaluations = 0
         self.unconverged = 0
+        self.last_joint = False
+        self.secant_retries = 0
 
     def step(self, sim, control: Control, k: int) -> None:
         """Advance ``sim`` by step ``k`` (1-based) of ``control``: the effector's target is moved along the
@@ -197,17 +199,19 @@ class ReplayDrive:
         start = first_compression(load, slope, float(np.dot(pose[:3] - tool, axis)), self.spring.stiffness,
                                   self.spring.damping / sim.dt)
         result = self.spring.step(sim, anchored, axis, start=start, contact_slope=slope)
-        self.last_axis = axis
+        self.last_axis, self.last_joint = axis, result.joint
         self._carried = (result.load, result.contact_slope)
         self.evaluations += result.evaluations
         self.unconverged += int(not result.converged)
+        self.secant_retries += int(self.spring.solve == "joint" and not result.joint)
 
     def summary(self) -> dict[str, float]:
         """JSON-ready: stiffness (N/m), damping (N s/m), whether anchored at the command, evaluations,
-        unconverged steps."""
+        unconverged steps, joint steps taken again by the secant (:attr:`SeriesDriveStep.joint`)."""
         return {"stiffness": self.spring.stiffness, "damping": self.spring.damping,
                 "anchored_at_command": self.commands is not None,
-                "evaluations": int(self.evaluations), "unconverged": int(self.unconverged)}
+                "evaluations": int(self.evaluations), "unconverged": int(self.unconverged),
+                "secant_retries": int(self.secant_retries)}
 
 
 def drive_sensitivities(model, sim, params: Sequence[str]
@@ -258,7 +262,7 @@ def drive_sensitivities(model, sim, params: Sequence[str]
             fallback = fallback or sim.solver.general_solver()
         lin = tangents.linearization(record, states[-1], fallback, factorization=factorization)
         step = DriveStep(vertices, drive.spring.load_vertices, drive.last_axis, drive.spring.stiffness + rate, rate,
-                         inertial=drive.spring.solve == "joint")
+                         inertial=drive.last_joint)
         dX[k], dF[k] = tangents.advance(lin, step)
         dQ[k] = tangents.dq
         states.append(sim.state.copy())

@@ -19,7 +19,7 @@ import scipy.sparse.linalg as spla
 
 from sim_core.control import Control
 from sim_core.drive_compression import CompressionUnknown
-from sim_core.errors import ConfigError
+from sim_core.errors import ConfigError, SimulationDivergedError
 from sim_core.sensitivity import DriveStep, TangentPropagation
 from sim_core.series_drive import SeriesSpringDrive
 from sim_core.step_info import StepInfo
@@ -47,10 +47,20 @@ def _path() -> list[float]:
     return [START_Z - (START_Z + DEPTH) * k / 12 for k in range(1, 13)] + [-DEPTH] * 6
 
 
-def _press(solve: str, steps: int | None = None, modulus: float | None = None):
+def _press(solve: str, steps: int | None = None, modulus: float | None = None, joint_fails: bool = False):
     """The pad pressed along :func:`_path` (its first ``steps`` steps) through the drive solved by ``solve``:
-    the simulation and each step's :class:`~sim_core.series_drive.SeriesDriveStep`."""
+    the simulation and each step's :class:`~sim_core.series_drive.SeriesDriveStep`. ``joint_fails``: every
+    step with the compression among the unknowns raises the solver's divergence (a forced failure)."""
     sim = _simulation()
+    if joint_fails:
+        step = sim.step
+
+        def failing(control):
+            if control.compression is not None:
+                raise SimulationDivergedError("forced: the joint Newton solve did not converge")
+            return step(control)
+
+        sim.step = failing
     if modulus is not None:
         sim.model.set_parameter("gel.youngs_modulus", modulus)
     drive = SeriesSpringDrive("ee", STIFFNESS, _gel_vertices(sim), force_tolerance=1.0e-5, damping=DAMPING,
@@ -113,7 +123,7 @@ def test_the_joint_step_is_the_secants_converged_root_and_one_newton_solve():
     ``N`` is a few tenths of a mN where the pad touches and stops, and zero at the dwell's rest."""
     _, _, secant = _press("secant")
     sim, _, joint = _press("joint")
-    assert all(r.evaluations == 1 and r.converged for r in joint)
+    assert all(r.evaluations == 1 and r.converged and r.joint for r in joint)
     assert sum(r.evaluations for r in secant) > 2 * len(secant)
     pressed = [k for k, r in enumerate(secant) if r.load > 0.2]
     assert len(pressed) >= 10
@@ -131,6 +141,21 @@ def test_the_joint_step_is_the_secants_converged_root_and_one_newton_solve():
     kinematic = _simulation()
     kinematic.step(Control({"ee": sim.state.effector_pose["ee"]}))
     assert np.max(np.abs(sim.state.x[base] - kinematic.state.x[base])) < 1e-12
+
+
+def test_a_joint_solve_that_diverges_is_taken_again_by_the_secant():
+    """Where the joint Newton solve fails (forced here at every step), the step is taken by the secant from the
+    same start state: the press is the secant's bit for bit (compressions, loads, residuals, the state and the
+    accepted steps' totals), each step counting the failed solve as one evaluation more and marked not joint."""
+    plain_sim, _, plain = _press("secant")
+    sim, _, retried = _press("joint", joint_fails=True)
+    assert len(retried) == len(plain)
+    for a, b in zip(retried, plain):
+        assert not a.joint and not b.joint
+        assert (a.compression, a.load, a.residual, a.converged) == (b.compression, b.load, b.residual, b.converged)
+        assert a.evaluations == b.evaluations + 1
+    assert np.array_equal(sim.state.x, plain_sim.state.x)
+    assert sim.step_totals == plain_sim.step_totals
 
 
 def test_free_motion_lags_by_the_dampers_c_v_over_k_s():
