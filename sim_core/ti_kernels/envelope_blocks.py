@@ -4,7 +4,8 @@
 Why. On the GPU the column-by-column factorisation (``"dots"``) is a chain of 1,698 dependent passes a Forming copy,
 each a few trips to global memory and a block synchronisation (~4.8 us a column at B = 1024 on an H100: 8.1 ms a
 factorisation against 0.35 ms of bytes), and the row-by-row substitution likewise (2 x 1,698 rows, ~3.7-4.5 ms against
-0.29; docs/gpu_roofline.md). The time is the number of dependent global-memory steps, not bytes or flops. A panel of
+0.29; docs/gpu_roofline.md). The design's premise: the time is the number of dependent global-memory steps, not
+bytes or flops. A panel of
 ``P`` consecutive columns (a supernode in the sense of the left-looking blocked Cholesky: Ng & Peyton 1993; Golub &
 Van Loan, Matrix Computations, 4th ed., Sec. 4.2.9) takes three of them instead of ``P``:
 
@@ -29,6 +30,11 @@ Dependent steps a Forming factorisation (``m = 1,698``, ``P = 12``): 142 panels 
 ``P`` shared-memory steps each, 1,704 synchronisations in all) against ``"dots"``' 1,698 passes (1,698
 synchronisations) and ``"panels"``' 1,132; a solve 142 x 4 = 568 passes against 2 x 1,698 + 1. Launches unchanged: the
 gather and one kernel a factorisation, one a solve.
+
+Measured on the device (H200, one Forming Newton matrix at B = 1024, docs/gpu_roofline.md, session 58's lead
+section): slower than ``"dots"``, gather + elimination 10.6-11.8 ms against 8.15 and a solve 7.9-8.2 against 7.25 (panel
+12, 128 / 256 threads a copy): the premise does not hold (the shared-memory steps, the block synchronisations and the
+``P`` sums a row keeps in registers cost more than the global passes saved), so ``"blocks"`` is opt-in.
 
 CPU (no CUDA block). The same kernels with ``lanes`` run one after another inside a copy's thread, a phase (the code
 between two synchronisations) for every lane before the next: the lanes' sharing of the work and the synchronisations'

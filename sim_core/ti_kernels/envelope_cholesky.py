@@ -108,8 +108,9 @@ CUDA_SCHEDULE = "dots"
 """The schedule of a :class:`BatchedEnvelope` given none on CUDA. ``"panels"``' kernels are faster (6.4 against 8.1 ms
 at B = 1024, 2.7 against 3.6 at 256, H100) but the lockstep's steady Forming rate did not follow in the one A/B made
 (1,573 against 1,724 scene-steps/s at B = 1024, session 52): opt-in. ``"blocks"`` (panels of columns,
-:mod:`sim_core.ti_kernels.envelope_blocks`) has not run on a GPU yet (session 58's one call timed out compiling before
-its first figure): opt-in there until ``out/s58-52env/ab.sh`` (main's tree) measures it."""
+:mod:`sim_core.ti_kernels.envelope_blocks`) is slower on the device: gather + elimination 10.6-11.8 ms against 8.15,
+solve 7.9-8.2 against 7.25 (panel 12 at 128 / 256 threads a copy, one Forming Newton matrix at B = 1024, H200;
+docs/gpu_roofline.md, session 58's lead section): opt-in."""
 
 SCHEDULE = "dots"
 """The schedule of a :class:`BatchedEnvelope` given none elsewhere than on CUDA (one thread a copy). ``"blocks"``
