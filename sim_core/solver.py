@@ -883,6 +883,11 @@ class NewtonSolver:
         """:func:`~sim_core.step_terms.contact_force` of the step's contact ``terms`` at its result ``x``."""
         return contact_force(x, terms)
 
+    def _velocities(self, x: np.ndarray, x_n: np.ndarray, dt: float) -> np.ndarray:
+        """The step's velocities ``(x - x^n) / dt`` (m/s, a new ``(n, 3)`` array) from its result ``x`` and start
+        ``x_n`` (m) and ``dt`` (s): implicit Euler's ``v^{n+1}``."""
+        return (x - x_n) / dt
+
     def _finish_step(self, step: StepTerms, x: np.ndarray, H: sp.csr_matrix, projection: str,
                      factorization: LinearSolver | SymmetricSolver, state_out: State, info: StepInfo) -> None:
         """Write the step's outputs at the accepted positions ``x`` ``(n, 3)`` into ``state_out``, its
@@ -916,7 +921,7 @@ class NewtonSolver:
         state_out.t = state_in.t + dt
         state_out.step_index = state_in.step_index + 1
         state_out.x = x
-        state_out.v = (x - x_n) / dt
+        state_out.v = self._velocities(x, x_n, dt)
         state_out.effector_pose = {k: np.array(v) for k, v in poses.items()}
         state_out.gripper_opening = dict(step.openings)
         state_out.contact_force = self._contact_force(

@@ -33,10 +33,45 @@ class DeviceIterates(CopyVectors):
         blocks = PinnedBlocks((max(self.vertex_count, 1), 3))  # the shape of the device arrays (new_vectors)
         self.trial_blocks: PinnedBlocks | None = blocks if blocks.page_locked else None
         self._backtrack = None  # the line search's DeviceBacktrack (backtrack)
+        self._resident: list[tuple[np.ndarray, object]] = []  # (frozen host array, its device copy): resident()
 
-    def start(self, x: np.ndarray) -> Iterate:
-        """The first iterate: ``x`` ``(N, 3)`` (a new array of the caller's, frozen) and its upload."""
-        return Iterate(frozen(x), self.upload(x))
+    def resident(self, host: np.ndarray | None):
+        """The device copy kept of the frozen host array ``host`` (the last step's result ``x`` or velocities ``v``,
+        :meth:`keep_resident`), or None where none is kept for that array object."""
+        return next((device for kept, device in self._resident if kept is host), None)
+
+    def keep_resident(self, *pairs: tuple[np.ndarray, object]) -> None:
+        """Keep ``(host, device)`` pairs, each a frozen host array (one that owns its memory or is registered with
+        :class:`~sim_core.energies.base.FrozenPositionsKey`: its values never change while it exists) and the float64
+        ndarray holding the same values, in place of the ones kept before, for :meth:`resident`: the step's result and
+        velocities, so that the next step starting from them reads them where they are."""
+        self._resident = [(host, device) for host, device in pairs if FrozenPositionsKey.holds(host)]
+
+    def forget_resident(self) -> None:
+        """Drop the kept device copies (:meth:`keep_resident`)."""
+        self._resident = []
+
+    def start(self, x: np.ndarray, x_n: np.ndarray | None = None, fixed_dofs: np.ndarray | None = None) -> Iterate:
+        """The first iterate: ``x`` ``(N, 3)`` (a new array of the caller's, frozen) and its device copy: with
+        ``x_n`` (positions ``(N, 3)``) kept resident (:meth:`resident`) and ``fixed_dofs`` (int ``(f,)``, ``3 v + j``),
+        where the caller's ``x`` equals ``x_n`` but at those DoFs, that copy made on the device from ``x_n``'s with
+        the values of ``x`` at ``fixed_dofs`` sent up (:meth:`~sim_core.ti_kernels.copy_vectors.CopyVectors
+        .copied_with_dofs`: ``f`` entries in place of ``3 N``); else ``x`` uploaded whole. The same values either
+        way."""
+        base = self.resident(x_n) if fixed_dofs is not None else None
+        if base is None:
+            return Iterate(frozen(x), self.upload(x))
+        return Iterate(frozen(x), self.copied_with_dofs(base, fixed_dofs, x.reshape(-1)[fixed_dofs]))
+
+    def velocities(self, x: Iterate, x_n: np.ndarray, dt: float) -> tuple[np.ndarray, object] | None:
+        """The step's velocities ``(x - x^n) / dt`` (m/s) made on the device, where ``x`` has its device copy and
+        ``x_n`` (m, ``(N, 3)``) is kept resident (:meth:`resident`): ``(host, device)``, the host array a new frozen
+        one downloaded once (NumPy's ``(x - x_n) / dt`` bit for bit); else None (the caller computes them)."""
+        base = self.resident(x_n)
+        if base is None or x.device is None:
+            return None
+        v = self.difference_quotient(x.device, base, dt)
+        return frozen(self.download(v)), v
 
     def trial(self, x: Iterate, d, alphas: np.ndarray) -> Iterate:
         """``x + alpha_i d`` on copy ``i``'s vertices (``alphas`` ``(B,)``), made on the device and downloaded once
@@ -99,8 +134,7 @@ class DeviceIterates(CopyVectors):
         g = self.new()
         for p in terms[:lead]:
             p.add_gradient_on_device(x.host, x.device, g)
-        force = self.download(g)
-        np.subtract(0.0, force, out=force)
+        force = self.download(self.negated(g))  # 0 - g on the device: no pass over the host array
         for p in terms[lead:]:
             force -= p.gradient(x.host)
         return force

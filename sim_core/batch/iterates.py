@@ -89,9 +89,24 @@ class HostIterates(CopyRuns):
         index: stacked vertex of copy ``i``'s vertex ``v``, shape ``(B, n)`` int.
     """
 
-    def start(self, x: np.ndarray) -> Iterate:
-        """The first iterate: ``x`` ``(N, 3)``, a new array of the caller's, frozen."""
+    def start(self, x: np.ndarray, x_n: np.ndarray | None = None, fixed_dofs: np.ndarray | None = None) -> Iterate:
+        """The first iterate: ``x`` ``(N, 3)``, a new array of the caller's, frozen (``x_n`` and ``fixed_dofs``: the
+        device iterates' hint, not needed here)."""
         return Iterate(frozen(x))
+
+    def resident(self, host: np.ndarray | None) -> None:
+        """No device copies on the host: None (the device iterates keep the step's result there)."""
+        return None
+
+    def velocities(self, x: Iterate, x_n: np.ndarray, dt: float) -> None:
+        """None: the caller computes the step's velocities on the host (the device iterates make them there)."""
+        return None
+
+    def keep_resident(self, *pairs) -> None:
+        """Nothing is kept on the host (the device iterates keep the step's result on the device)."""
+
+    def forget_resident(self) -> None:
+        """Nothing is kept on the host."""
 
     def trial(self, x: Iterate, d: np.ndarray, alphas: np.ndarray) -> Iterate:
         """``x + alpha_i d`` on copy ``i``'s vertices (``d`` ``3 N`` entries, ``alphas`` ``(B,)``)."""

@@ -228,6 +228,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         self.last_stacked_info: StepInfo | None = None
         self.copies_factorized = 0  # copies whose matrix the device solver factorised, summed over its calls
         self._finish_iterate: Iterate | None = None  # the step's result while _finish_step runs
+        self._made_velocities: tuple | None = None  # (host, device) velocities made by _velocities in _finish_step
 
     def _new_elastic_terms(self):
         """:meth:`NewtonSolver._new_elastic_terms`; on a Taichi backend the elastic terms' plastic update is one
@@ -251,7 +252,19 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         for the energy and one for the gradient; ``fixed_terms``, the step's record, keeps the terms)."""
         step, x = super()._set_up_step(state_in, control, dt, guess, info)
         step.loop_terms = lumped_loop_terms(step.loop_terms)
+        lumped = next((p for p in step.loop_terms if isinstance(p, LumpedQuadratic)), None)
+        if lumped is not None and lumped.predicted:  # y = x^n + dt v^n: made where the last step left x^n and v^n
+            vectors = self._vectors
+            x_n, v_n = vectors.resident(state_in.x), vectors.resident(state_in.v)
+            if x_n is not None and v_n is not None:
+                lumped.use_device_center(vectors.advanced(x_n, v_n, dt))
         return step, x
+
+    def reset_caches(self) -> None:
+        """:meth:`NewtonSolver.reset_caches`, and the device copies of the last step's result dropped
+        (:meth:`~sim_core.batch.device_iterates.DeviceIterates.keep_resident`)."""
+        super().reset_caches()
+        self._vectors.forget_resident()
 
     def boundary(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
         """:meth:`NewtonSolver.boundary` vectorised over the copies
@@ -321,7 +334,10 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         vectors = self._vectors
         info = StepInfo()
         step, x = self._set_up_step(state_in, control, dt, None, info)
-        x = vectors.start(x)
+        # the first iterate is x^n but at the fixed DoFs (their targets), unless the solids are carried or the drive's
+        # base is placed: then made on the device from x^n where the last step left it
+        x = (vectors.start(x) if cfg.carried_start or step.compression is not None
+             else vectors.start(x, step.x_n, self._fixed_dofs(step)))
         running = ~self.held
         # per copy how its iterations end, (B,) arrays decided over every copy (no loop over the copies until infos)
         outcomes = CopyOutcomes(cfg, running)
@@ -437,13 +453,20 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         elastic = self.elastic
         if isinstance(elastic, StackedElasticTerms) and x.device is not None:  # the plastic update reads x there
             elastic.device_positions = (x.host, x.device)
-        self._finish_iterate = x  # the contact force summed where x is (_contact_force)
+        self._finish_iterate = x  # the contact force summed and the velocities made where x is (_contact_force)
+        self._made_velocities = None
         try:
             self._finish_step(step, x.host, H, projection, factorization, state_out, info)
         finally:
             self._finish_iterate = None
             if isinstance(elastic, StackedElasticTerms):
                 elastic.device_positions = None
+        # the result and its velocities kept on the device for the next step from this state (its inertia's centre,
+        # its first iterate, its velocities)
+        if state_out.x is x.host and x.device is not None:
+            made = self._made_velocities
+            vectors.keep_resident((x.host, x.device), *([made] if made is not None and made[0] is state_out.v else []))
+        self._made_velocities = None
         frozen(state_out.v)  # a new array of the step's: the next step's record keeps it without a copy
         infos = outcomes.infos(info)
         info.iterations = int(outcomes.iteration[running].max(initial=0))
@@ -471,6 +494,19 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         d_bar = vectors.new()
         self.pcg.solve_on_device(rhs, d_bar)
         return vectors.zero_dofs(d_bar, self._fixed_dofs(step))
+
+    def _velocities(self, x: np.ndarray, x_n: np.ndarray, dt: float) -> np.ndarray:
+        """:meth:`NewtonSolver._velocities`; with the step's result on the device (its :class:`Iterate`) and ``x_n`` kept
+        there by the last step, made there and downloaded once
+        (:meth:`~sim_core.batch.device_iterates.DeviceIterates.velocities`: the same values; the pair kept for
+        :meth:`_lockstep_step` to keep resident)."""
+        it = self._finish_iterate
+        if it is not None and it.host is x:
+            made = self._vectors.velocities(it, x_n, dt)
+            if made is not None:
+                self._made_velocities = made
+                return made[0]
+        return super()._velocities(x, x_n, dt)
 
     def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
         """:meth:`NewtonSolver._contact_force`; with the step's result on the device (the batched CG) and a first term

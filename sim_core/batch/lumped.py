@@ -45,6 +45,8 @@ class LumpedQuadratic:
         center: ``y`` per vertex, m, shape ``(n, 3)`` (``x_hat`` where ``w = 0``; the inertia's own array when it is
             the only term).
         offset: ``E_0``, J.
+        predicted: whether ``y`` is the inertia's ``x_hat`` itself (no gravity, no damping): then the device may make
+            ``y`` from the state it keeps (:meth:`use_device_center`).
     """
 
     def __init__(self, inertia: InertiaPotential, gravity: GravityPotential | None = None,
@@ -88,6 +90,7 @@ class LumpedQuadratic:
                                                                                                       pull)
         self.weight = weight
         self.center = center
+        self.predicted = gravity is None and damping is None
         self.offset = offset
         self._weight3 = weight[:, None]
         self._root3 = np.sqrt(weight)[:, None]
@@ -168,17 +171,27 @@ class LumpedQuadratic:
         self._device_energy = (x, partial)
         return None
 
+    def use_device_center(self, center_device) -> None:
+        """Take ``center_device``, a float64 Taichi ndarray ``(n, 3)`` (m) holding :attr:`center`'s values (made on the
+        device from the state kept there, :meth:`~sim_core.ti_kernels.copy_vectors.CopyVectors.advanced`), as the
+        device's ``y`` in place of an upload of :attr:`center` (``3 n`` float64 values a step)."""
+        weight = None if self._device is None else self._device[1]
+        self._device = (center_device, weight)
+
     def _device_arrays(self) -> tuple:
         """``(center, weight)`` as float64 Taichi ndarrays ``(n, 3)`` and ``(n,)`` (at least one row), uploaded at the
-        first call."""
-        if self._device is None:
+        first call (the center where :meth:`use_device_center` has not given it)."""
+        center, weight = (None, None) if self._device is None else self._device
+        if center is None or weight is None:
             from sim_core.ti_backend import ti  # Taichi kernels: a Taichi backend only
             from sim_core.ti_kernels import copy_vectors, device_copy, transfer
 
             n = self.weight.shape[0]
-            weight = device_copy.new_ndarray(ti.f64, (max(n, 1),))
-            transfer.upload(weight, self.weight if n else np.zeros(1))
-            center = transfer.upload(copy_vectors.new_vectors(n), self.center if n else np.zeros((1, 3)))
+            if weight is None:
+                weight = device_copy.new_ndarray(ti.f64, (max(n, 1),))
+                transfer.upload(weight, self.weight if n else np.zeros(1))
+            if center is None:
+                center = transfer.upload(copy_vectors.new_vectors(n), self.center if n else np.zeros((1, 3)))
             self._device = (center, weight)
         return self._device
 

@@ -195,6 +195,40 @@ def _moved(x: _VEC, d: _VEC, alpha: _F64, vertex_copy: _I32, out: _VEC, n: ti.i3
 
 
 @fast_kernel
+def _difference_quotient(x: _VEC, x0: _VEC, dt: ti.f64, out: _VEC, n: ti.i32):
+    """``out_v = (x_v - x0_v) / dt`` (one subtraction and one division an entry: NumPy's ``(x - x0) / dt``)."""
+    for v in range(n):
+        for j in ti.static(range(3)):
+            out[v, j] = (x[v, j] - x0[v, j]) / dt
+
+
+@fast_kernel
+def _advanced(x: _VEC, v: _VEC, dt: ti.f64, out: _VEC, n: ti.i32):
+    """``out_v = x_v + dt v_v`` (NumPy's ``x + dt * v``; a fused multiply-add where the device contracts one)."""
+    for k in range(n):
+        for j in ti.static(range(3)):
+            out[k, j] = x[k, j] + dt * v[k, j]
+
+
+@fast_kernel
+def _negated(a: _VEC, out: _VEC, n: ti.i32):
+    """``out_v = 0 - a_v`` (NumPy's ``np.subtract(0.0, a)``: ``+0`` where ``a_v`` is ``+-0``)."""
+    for v in range(n):
+        for j in ti.static(range(3)):
+            out[v, j] = 0.0 - a[v, j]
+
+
+@fast_kernel
+def _copied_with_dofs(a: _VEC, dofs: _I32, values: _F64, out: _VEC, n: ti.i32, count: ti.i32):
+    """``out = a``, then ``out`` at the flat DoFs ``dofs[:count]`` (``3 v + j``) set to ``values[:count]``."""
+    for v in range(n):
+        for j in ti.static(range(3)):
+            out[v, j] = a[v, j]
+    for k in range(count):
+        out[dofs[k] // 3, dofs[k] % 3] = values[k]
+
+
+@fast_kernel
 def _blend(dst: _VEC, src: _VEC, scale: ti.f64, action: _I32, vertex_copy: _I32, n: ti.i32):
     """Per vertex ``v`` of copy ``c``: ``dst_v = scale src_v`` where ``action[c]`` is 1, ``dst_v = 0`` where it is 2,
     unchanged where it is 0."""
@@ -493,6 +527,7 @@ class CopyVectors:
         self._dofs: tuple | None = None  # (host DoF indices, their device copy) of zero_dofs
         self._rows: tuple | None = None  # (capacity, vertices, rows) device buffers of add_rows
         self._scratch = None  # an (N, 3) buffer of add
+        self._dof_values = None  # the float64 device buffer of copied_with_dofs' values
 
     @staticmethod
     def _indices(values: np.ndarray):
@@ -562,6 +597,45 @@ class CopyVectors:
         :class:`~sim_core.ti_kernels.backtrack.DeviceBacktrack`'s state): no upload."""
         out = self.new(zero=False)
         _moved(x, d, alphas, self._vertex_copy, out, self.vertex_count)
+        return out
+
+    def difference_quotient(self, x, x0, dt: float):
+        """A new ndarray ``(x - x0) / dt`` (e.g. the step's velocities, m/s, from its result and start, m, and ``dt``,
+        s), each entry NumPy's ``(x - x0) / dt`` bit for bit."""
+        out = self.new(zero=False)
+        _difference_quotient(x, x0, float(dt), out, self.vertex_count)
+        return out
+
+    def advanced(self, x, v, dt: float):
+        """A new ndarray ``x + dt v`` (e.g. the inertia's predicted positions ``x^n + dt v^n``, m), each entry NumPy's
+        ``x + dt * v`` to one rounding (a fused multiply-add where the device contracts one)."""
+        out = self.new(zero=False)
+        _advanced(x, v, float(dt), out, self.vertex_count)
+        return out
+
+    def negated(self, a):
+        """A new ndarray ``0 - a`` (NumPy's ``np.subtract(0.0, a)`` bit for bit)."""
+        out = self.new(zero=False)
+        _negated(a, out, self.vertex_count)
+        return out
+
+    def copied_with_dofs(self, a, dofs: np.ndarray, values: np.ndarray):
+        """A new ndarray equal to ``a`` but at the flat DoFs ``dofs`` (int ``(f,)``, ``3 v + j``, the same object as
+        :meth:`zero_dofs`' to reuse its device copy), which take ``values`` (``(f,)`` float64, sent up): the entries
+        copied, not summed (``-0`` kept)."""
+        kept = self._dofs
+        if kept is None or kept[0] is not dofs:
+            kept = self._dofs = (dofs, self._indices(np.asarray(dofs, dtype=np.int32)))
+        count = int(len(dofs))
+        staged = self._dof_values
+        if staged is None or staged.shape[0] < max(count, 1):
+            staged = self._dof_values = device_copy.new_ndarray(ti.f64, (max(count, 1),))
+        if count:
+            host = np.zeros(staged.shape[0])
+            host[:count] = values
+            transfer.upload(staged, host)
+        out = self.new(zero=False)
+        _copied_with_dofs(a, kept[1], staged, out, self.vertex_count, count)
         return out
 
     def dot(self, a, b) -> np.ndarray:
