@@ -34,6 +34,8 @@ class DeviceIterates(CopyVectors):
         self.trial_blocks: PinnedBlocks | None = blocks if blocks.page_locked else None
         self._backtrack = None  # the line search's DeviceBacktrack (backtrack)
         self._resident: list[tuple[np.ndarray, object]] = []  # (frozen host array, its device copy): resident()
+        # (host force, its device array or None where a host term was subtracted on the host) of contact_force
+        self.last_force: tuple | None = None
 
     def resident(self, host: np.ndarray | None):
         """The device copy kept of the frozen host array ``host`` (the last step's result ``x`` or velocities ``v``,
@@ -134,9 +136,11 @@ class DeviceIterates(CopyVectors):
         g = self.new()
         for p in terms[:lead]:
             p.add_gradient_on_device(x.host, x.device, g)
-        force = self.download(self.negated(g))  # 0 - g on the device: no pass over the host array
+        negated = self.negated(g)  # 0 - g on the device: no pass over the host array
+        force = self.download(negated)
         for p in terms[lead:]:
             force -= p.gradient(x.host)
+        self.last_force = (force, negated if lead == len(terms) else None)
         return force
 
     def gradient(self, terms: list, x: Iterate, fixed_dofs: np.ndarray, fresh_first: bool = False):

@@ -108,6 +108,10 @@ class HostIterates(CopyRuns):
     def forget_resident(self) -> None:
         """Nothing is kept on the host."""
 
+    def copy_rows(self, arrays: list, copies: np.ndarray, offsets: np.ndarray) -> list:
+        """Not made on the host (:meth:`resident` keeps nothing, so no caller asks)."""
+        raise NotImplementedError("HostIterates keeps no device arrays")
+
     def trial(self, x: Iterate, d: np.ndarray, alphas: np.ndarray) -> Iterate:
         """``x + alpha_i d`` on copy ``i``'s vertices (``d`` ``3 N`` entries, ``alphas`` ``(B,)``)."""
         return Iterate(frozen(self.moved(x.host, d.reshape(-1, 3), alphas)))

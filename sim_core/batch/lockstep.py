@@ -464,9 +464,17 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         # the result and its velocities kept on the device for the next step from this state (its inertia's centre,
         # its first iterate, its velocities)
         if state_out.x is x.host and x.device is not None:
+            kept = [(x.host, x.device)]
             made = self._made_velocities
-            vectors.keep_resident((x.host, x.device), *([made] if made is not None and made[0] is state_out.v else []))
+            if made is not None and made[0] is state_out.v:
+                kept.append(made)
+            force = vectors.last_force
+            if force is not None and force[1] is not None and force[0] is state_out.contact_force:
+                kept.append((frozen(force[0]), force[1]))  # (the engine copies a frozen force before writing it)
+            vectors.keep_resident(*kept)
         self._made_velocities = None
+        if x.device is not None:
+            vectors.last_force = None
         frozen(state_out.v)  # a new array of the step's: the next step's record keeps it without a copy
         infos = outcomes.infos(info)
         info.iterations = int(outcomes.iteration[running].max(initial=0))
@@ -494,6 +502,21 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         d_bar = vectors.new()
         self.pcg.solve_on_device(rhs, d_bar)
         return vectors.zero_dofs(d_bar, self._fixed_dofs(step))
+
+    def resident_rows(self, state: State, copies: np.ndarray) -> dict | None:
+        """The rows of ``copies`` (int ``(k,)``) of the stacked ``state``'s positions (translated back by the copies'
+        offsets), velocities and contact forces, each a new ``(k, n, 3)`` host array gathered on the device from the
+        copies kept there by the last step (:meth:`~sim_core.batch.device_iterates.DeviceIterates.copy_rows`: the
+        values of :meth:`StackedScene.copy_states`' host gathers bit for bit), as ``{"x": .., "v": .., "force": ..}``
+        for that method; None where any of the three is not kept for ``state``'s arrays (a held copy's rows written
+        on the host, a host term's force, the host solvers)."""
+        vectors = self._vectors
+        kept = [vectors.resident(a) for a in (state.x, state.v, state.contact_force)]
+        if any(a is None for a in kept) or not len(copies):
+            return None
+        x, v, force = vectors.copy_rows([(kept[0], True), (kept[1], False), (kept[2], False)], copies,
+                                        self.scene.offset)
+        return {"x": x, "v": v, "force": force}
 
     def _velocities(self, x: np.ndarray, x_n: np.ndarray, dt: float) -> np.ndarray:
         """:meth:`NewtonSolver._velocities`; with the step's result on the device (its :class:`Iterate`) and ``x_n`` kept
@@ -847,8 +870,9 @@ class LockstepEngine:
         step_index = np.array([s.state.step_index for s in sims])
         res = self.solver.step_copies(state_in, out, control, sims[0].dt, run, step_index)
         advanced = np.array([info is not None for info in res.infos])
-        if not advanced.all():  # the solver's iterate and velocities are frozen (iterates.frozen): written below
-            out.x, out.v = (a if a.flags.writeable else a.copy() for a in (out.x, out.v))
+        if not advanced.all():  # the solver's iterate, velocities and force are frozen (iterates.frozen): written below
+            out.x, out.v, out.contact_force = (a if a.flags.writeable else a.copy()
+                                               for a in (out.x, out.v, out.contact_force))
         for i in np.flatnonzero(~advanced):  # held and failed copies: as they were
             idx = scene.index[i]
             out.x[idx] = state_in.x[idx]
@@ -864,7 +888,8 @@ class LockstepEngine:
         stepped = np.flatnonzero(advanced)
         before = [sims[i].state for i in stepped]
         states = scene.copy_states(out, stepped, np.array([b.t + sims[i].dt for i, b in zip(stepped, before)]),
-                                   np.array([b.step_index + 1 for b in before], dtype=np.int64))
+                                   np.array([b.step_index + 1 for b in before], dtype=np.int64),
+                                   self.solver.resident_rows(out, stepped))
         for i, b, st in zip(stepped, before, states):
             sim = sims[i]
             sim.state = st

@@ -122,17 +122,23 @@ class StackedScene:
         own time ``t`` (s) and step index; no contact memory (the stacked state holds it)."""
         return self.copy_states(stacked, np.array([i]), np.array([t]), np.array([step_index]))[0]
 
-    def copy_states(self, stacked: State, copies: np.ndarray, t: np.ndarray, step_index: np.ndarray) -> list[State]:
+    def copy_states(self, stacked: State, copies: np.ndarray, t: np.ndarray, step_index: np.ndarray,
+                    rows: dict | None = None) -> list[State]:
         """:meth:`copy_state` of each copy in ``copies`` (int ``(k,)``) with its own time ``t[j]`` (s) and step
         index ``step_index[j]``: positions (less the copies' offsets), velocities and contact forces gathered from the
         stacked arrays at once (each state's arrays are views of one ``(k, n, 3)`` array a
-        quantity)."""
+        quantity), or taken from ``rows`` where given: ``{"x", "v", "force"}``, those ``(k, n, 3)`` arrays gathered
+        where the stacked state is kept (the lockstep solver's device,
+        :meth:`~sim_core.batch.lockstep.LockstepSolver.resident_rows`; the same values)."""
         copies = np.asarray(copies, dtype=np.int64)
-        gather = self._copy_rows(copies)
         offsets = self.offset[copies]
-        x = gather(stacked.x, offsets, translated=True)
-        v = gather(stacked.v)
-        force = None if stacked.contact_force is None else gather(stacked.contact_force)
+        if rows is not None:
+            x, v, force = rows["x"], rows["v"], rows["force"]
+        else:
+            gather = self._copy_rows(copies)
+            x = gather(stacked.x, offsets, translated=True)
+            v = gather(stacked.v)
+            force = None if stacked.contact_force is None else gather(stacked.contact_force)
         # the effectors' poses translated back, one (k, 7) array an effector (its rows the copies' poses)
         poses = {n: np.array([stacked.effector_pose[f"{n}#{i}"] for i in copies], dtype=float).reshape(len(copies), 7)
                  for n in self.effector_names}

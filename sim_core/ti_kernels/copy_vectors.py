@@ -229,6 +229,21 @@ def _copied_with_dofs(a: _VEC, dofs: _I32, values: _F64, out: _VEC, n: ti.i32, c
 
 
 @fast_kernel
+def _copy_rows(a: _VEC, index: ti.types.ndarray(dtype=ti.i32, ndim=2), copies: _I32, minus: _VEC,
+               translated: ti.i32, out: ti.types.ndarray(dtype=ti.f64, ndim=3), k: ti.i32, n: ti.i32):
+    """``out[j, v] = a[index[c, v]]`` for ``c = copies[j]`` (``j < k``, ``v < n``), less ``minus[c]`` where
+    ``translated`` (one subtraction an entry)."""
+    for j, v in ti.ndrange(k, n):
+        c = copies[j]
+        r = index[c, v]
+        for q in ti.static(range(3)):
+            if translated:
+                out[j, v, q] = a[r, q] - minus[c, q]
+            else:
+                out[j, v, q] = a[r, q]
+
+
+@fast_kernel
 def _blend(dst: _VEC, src: _VEC, scale: ti.f64, action: _I32, vertex_copy: _I32, n: ti.i32):
     """Per vertex ``v`` of copy ``c``: ``dst_v = scale src_v`` where ``action[c]`` is 1, ``dst_v = 0`` where it is 2,
     unchanged where it is 0."""
@@ -528,6 +543,8 @@ class CopyVectors:
         self._rows: tuple | None = None  # (capacity, vertices, rows) device buffers of add_rows
         self._scratch = None  # an (N, 3) buffer of add
         self._dof_values = None  # the float64 device buffer of copied_with_dofs' values
+        self._index_host = index  # (B, n): copy_rows' layout
+        self._rows_layout = None  # (offsets, index, offsets on the device, {k: (k, n, 3) buffer}) of copy_rows
 
     @staticmethod
     def _indices(values: np.ndarray):
@@ -598,6 +615,34 @@ class CopyVectors:
         out = self.new(zero=False)
         _moved(x, d, alphas, self._vertex_copy, out, self.vertex_count)
         return out
+
+    def copy_rows(self, arrays: list, copies: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
+        """Each copy's rows of stacked ``(N, 3)`` ndarrays gathered on the device and downloaded once each:
+        ``arrays`` a list of ``(array, translated)``; returns, for each, a new host array ``(k, n, 3)`` whose row ``j``
+        is copy ``copies[j]``'s vertices (int ``(k,)``; in the order of the ``index`` this object was made with), less
+        ``offsets[copies[j]]`` (``(B, 3)``, m, sent once) where ``translated``: NumPy's ``a[index[c]] - offsets[c]``
+        bit for bit."""
+        copies = np.asarray(copies, dtype=np.int32)
+        k, n = len(copies), self.vertex_count // max(self.copies, 1)
+        if not k or not n:
+            return [np.zeros((k, n, 3)) for _ in arrays]
+        kept = self._rows_layout
+        if kept is None or kept[0] is not offsets:
+            index = device_copy.new_ndarray(ti.i32, (self.copies, n))
+            index.from_numpy(np.ascontiguousarray(self._index_host, dtype=np.int32))
+            minus = transfer.upload(device_copy.new_ndarray(ti.f64, (self.copies, 3)), offsets)
+            kept = self._rows_layout = (offsets, index, minus, {})
+        _, index, minus, buffers = kept
+        out_dev = buffers.get(k)
+        if out_dev is None:
+            buffers.clear()
+            out_dev = buffers[k] = device_copy.new_ndarray(ti.f64, (k, n, 3))
+        copies_dev = self._indices(copies)
+        results = []
+        for a, translated in arrays:
+            _copy_rows(a, index, copies_dev, minus, int(bool(translated)), out_dev, k, n)
+            results.append(transfer.download(out_dev))
+        return results
 
     def difference_quotient(self, x, x0, dt: float):
         """A new ndarray ``(x - x0) / dt`` (e.g. the step's velocities, m/s, from its result and start, m, and ``dt``,

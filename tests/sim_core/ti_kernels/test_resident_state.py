@@ -1,7 +1,8 @@
 """The lockstep step's state kept on the device between steps (``DeviceIterates.keep_resident``): the kernels that make
 the velocities, the inertia's centre, the first iterate and the contact force's sign there equal NumPy's operations,
 and a Forming batch stepped on CUDA's paths (emulated on the CPU arch) takes its first iterates, inertia centres and
-velocities from the last step's device arrays from its second step on, each copy at its separate run's states."""
+velocities from the last step's device arrays from its second step on, and the copies' states are gathered there, each
+copy at its separate run's states."""
 
 from __future__ import annotations
 
@@ -45,6 +46,14 @@ def test_state_kernels_equal_numpy(ti_cpu):
     assert_same_sums(made[0], (want - x0) / dt)
     vectors.forget_resident()
     assert vectors.resident(kept_x) is None and vectors.velocities(start, kept_x, dt) is None
+    # the copies' rows gathered on the device: the host gather's values (translated back where asked)
+    index = rng.permutation(copies * n).reshape(copies, n)
+    shuffled = DeviceIterates(index)
+    offsets = rng.normal(size=(copies, 3))
+    chosen = np.array([2, 0])
+    moved, plain = shuffled.copy_rows([(xd, True), (xd, False)], chosen, offsets)
+    np.testing.assert_array_equal(moved, x[index[chosen]] - offsets[chosen][:, None, :])
+    np.testing.assert_array_equal(plain, x[index[chosen]])
 
 
 @pytest.mark.skipif(TEST_ARCH != "cpu", reason="runs CUDA's lockstep paths emulated on the CPU arch beside the host "
@@ -73,7 +82,11 @@ def test_lockstep_forming_steps_from_its_device_state(ti_cpu, monkeypatch):
         alone.state = run.batch.states[i].copy()
         separate.append([alone.step(Control(effector_pose_target={effector: run.targets[i][k]})) and alone.state.copy()
                          for k in range(steps)])
-    starts, centres, velocities = [], [], []
+    from sim_core.batch.lockstep import LockstepSolver
+
+    starts, centres, velocities, rows = [], [], [], []
+    gathered = LockstepSolver.resident_rows
+    monkeypatch.setattr(LockstepSolver, "resident_rows", lambda *a: (rows.append(gathered(*a)), rows[-1])[1])
     start, centre, made = DeviceIterates.start, LumpedQuadratic.use_device_center, DeviceIterates.velocities
     monkeypatch.setattr(DeviceIterates, "start", lambda self, x, x_n=None, dofs=None: (
         starts.append(self.resident(x_n) is not None and dofs is not None), start(self, x, x_n, dofs))[1])
@@ -89,12 +102,18 @@ def test_lockstep_forming_steps_from_its_device_state(ti_cpu, monkeypatch):
         after = run.batch.lockstep.state
         if k:
             np.testing.assert_array_equal(after.v, (after.x - before.x) / dt)
+        scene = run.batch.lockstep.scene
+        on_host = scene.copy_states(after, np.arange(2), np.zeros(2), np.zeros(2, dtype=np.int64))
+        for i in range(2):  # the copies' states as the host's gathers make them, bit for bit
+            for name in ("x", "v", "contact_force"):
+                np.testing.assert_array_equal(getattr(run.batch.states[i], name), getattr(on_host[i], name))
         for i in range(2):
             assert np.max(np.abs(run.batch.states[i].x - separate[i][k].x)) <= tol, (i, k)
             assert np.max(np.abs(run.batch.states[i].v - separate[i][k].v)) <= tol / dt, (i, k)
     assert starts == [False] + [True] * (steps - 1)  # (the first step's x^n: the caller's state, uploaded)
     assert len(centres) == steps - 2  # v^n kept from the second step's velocities on (the first's: x^n not kept)
     assert velocities[0] is None and all(m is not None for m in velocities[1:])
+    assert [r is not None for r in rows] == [False] + [True] * (steps - 1)  # the copies' states gathered there
     # a copy's state replaced from outside: the stacked state is made again and nothing kept is read for it
     run.batch.sims[0].state = run.batch.states[0].copy()
     run.batch.step([Control(effector_pose_target={effector: t[steps - 1]}) for t in run.targets])
