@@ -33,6 +33,7 @@ class DeviceIterates(CopyVectors):
         blocks = PinnedBlocks((max(self.vertex_count, 1), 3))  # the shape of the device arrays (new_vectors)
         self.trial_blocks: PinnedBlocks | None = blocks if blocks.page_locked else None
         self._backtrack = None  # the line search's DeviceBacktrack (backtrack)
+        self.compile_state_kernels()  # (first called at the second and third steps: compiled here, at the first)
         self._resident: list[tuple[np.ndarray, object]] = []  # (frozen host array, its device copy): resident()
         # (host force, its device array or None where a host term was subtracted on the host) of contact_force
         self.last_force: tuple | None = None
