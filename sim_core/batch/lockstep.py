@@ -506,7 +506,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
     def resident_rows(self, state: State, copies: np.ndarray) -> dict | None:
         """The rows of ``copies`` (int ``(k,)``) of the stacked ``state``'s positions (translated back by the copies'
         offsets), velocities and contact forces, each a new ``(k, n, 3)`` host array gathered on the device from the
-        copies kept there by the last step (:meth:`~sim_core.batch.device_iterates.DeviceIterates.copy_rows`: the
+        copies kept there by the last step (:meth:`~sim_core.ti_kernels.copy_vectors.CopyVectors.copy_rows`: the
         values of :meth:`StackedScene.copy_states`' host gathers bit for bit), as ``{"x": .., "v": .., "force": ..}``
         for that method; None where any of the three is not kept for ``state``'s arrays (a held copy's rows written
         on the host, a host term's force, the host solvers)."""
@@ -871,7 +871,7 @@ class LockstepEngine:
         res = self.solver.step_copies(state_in, out, control, sims[0].dt, run, step_index)
         advanced = np.array([info is not None for info in res.infos])
         if not advanced.all():  # the solver's iterate, velocities and force are frozen (iterates.frozen): written below
-            out.x, out.v, out.contact_force = (a if a.flags.writeable else a.copy()
+            out.x, out.v, out.contact_force = (a if a is None or a.flags.writeable else a.copy()
                                                for a in (out.x, out.v, out.contact_force))
         for i in np.flatnonzero(~advanced):  # held and failed copies: as they were
             idx = scene.index[i]
