@@ -429,6 +429,8 @@ def _phase_specs(backend: str) -> list:
              (lockstep.LockstepEngine, "_sync", "engine: _sync", {engine}),
              (StackedScene, "stack_controls", "engine: stack_controls", {engine}),
              (StackedScene, "copy_states", "engine: copy_states", {engine}),
+             # the copies' rows gathered on the device where the step kept its state there (their downloads)
+             (lockstep.LockstepSolver, "resident_rows", "engine: copy_states", {engine}),
              (lockstep.LockstepSolver, "step_copies", "solver: step_copies (outside the attempt)", {engine}),
              (lockstep.LockstepSolver, "_lockstep_step", _NEWTON, None),
              (lockstep.LockstepSolver, "_set_up_step", setup, {_NEWTON}),
