@@ -85,6 +85,21 @@ friction lands +25 % off outside its robust 2-sigma interval, as from the other 
 tack opt-in is that friction, not the release. At that end the sheet points prefer the high friction (in the hold,
 3.0-3.84 s, and the fall), the markers the engine's; left out of the fit, the carried card's rows let the friction run
 to 1.30 (+76 %, NOT IDENTIFIED): the friction's pull is not the carried rows alone (docs/benchmarks_log.md, session 58).
+
+Where that pull comes from (docs/benchmarks_log.md, session 59, s59-49lift): with the tack, the gel-card friction acts on
+a lift's card only on the bonded patch. The bonds form wherever the gel touches the card, so up to the peel every
+gel-card friction row is a bonded vertex (tests/sysid/test_tack.py), and ``friction.gel_sheet`` holds the card in shear
+side by side with the layer's spring ``k_t`` on the same vertices, its normal load the patch's press against the gel as
+the fold arches the card (nominal_s109 at the engine's values, k_t 2.9: mu lam 0.18-0.21 N in the hold 3.0-3.84 s,
+0.04 N in 2.2-3.0 s). The engine has both there too: its tack is adhesive point bonds (the reference set's README;
+12 formed on nominal_s109, labels.yaml) beside its frictional gel-card contacts, as in the own MuJoCo world made after
+it (benchmarks/mujoco_world/mjcf.py: ``connect`` equalities, contacts untouched), so the friction is not taken off the
+patch: a bonded patch that presses is a frictional contact. With the friction zeroed on the bonded rows, friction 0.734 -> 0.92 changes the sheet
+points' sum of squares by 2 % (the released card's fall): a lift sees the friction through the patch's one tangential
+balance, beside ``k_t``, and which friction the sheet points prefer follows ``k_t`` (at the engine's materials, sheet
+points' sum of squares at friction 0.734 / 0.92: 3.60e7 / 3.38e7 with k_t 2.0, 1.82e7 / 2.12e7 with k_t 2.9; the fits end
+at k_t 2.4-3.5). The fitted friction then carries the layer law's form error (isotropic springs at the 48 bonded gel vertices
+where the engine bonds 12 points), which no covariance of the fit shows.
 """
 
 from __future__ import annotations

@@ -182,6 +182,35 @@ def test_the_layer_fitted_jointly_with_the_bending_from_starts_off_comes_back(li
     assert abs(k - K_TRUE) < 2 * result.sigma_robust[SHEAR_STIFFNESS_SETTING]
 
 
+def test_on_a_lift_the_gel_card_friction_acts_where_the_tack_holds_the_card(lift_fold, monkeypatch):
+    """On this simulator's lift-and-fold with the tack's layer, every gel-card friction row up to the peel is a
+    bonded gel vertex (bonds form wherever the gel touches the card), and those rows carry the friction's load:
+    ``friction.gel_sheet`` acts on a lift's card only in parallel with the layer's shear spring ``k_t`` on the same
+    vertices, so the lift's data see the two through the bonded patch's one tangential balance (nominal_s109 at the
+    engine's values: mu lam 0.18-0.21 N on the bonded rows in the hold, docs/benchmarks_log.md, session 59)."""
+    from sim_core.candidates import hook as candidate_hook
+
+    model, decision = lift_fold
+    assert decision.on, decision.why
+    loads = []  # per step before the peel: (bonded rows' mu lam, other gel rows' mu lam), N
+    terms = candidate_hook.CandidateHook.terms
+
+    def recording(self, sim_model, state, x_prev, dt, elastic, friction):
+        if friction is not None and "adhesion" in self.params and not self.peeled(state):
+            gel = candidate_hook._gel_contact_vertices(sim_model)
+            on_gel = np.isin(friction.vertices, gel).any(axis=1)
+            bonded = np.isin(friction.vertices, self.anchors(state)[0]).any(axis=1)
+            load = np.asarray(friction.mu) * np.asarray(friction.lam)
+            loads.append((float(load[on_gel & bonded].sum()), float(load[on_gel & ~bonded].sum())))
+        return terms(self, sim_model, state, x_prev, dt, elastic, friction)
+
+    monkeypatch.setattr(candidate_hook.CandidateHook, "terms", recording)
+    model.simulate(TRUE_PARAMS)
+    bonded, other = np.asarray(loads).sum(axis=0)
+    assert len(loads) > 10 and bonded > 0.0
+    assert other <= 1e-9 * bonded, (bonded, other)
+
+
 def test_rows_per_datum_is_the_residual_correlation_time():
     """An AR(1) residual of correlation 0.8 a row carries one datum in (1 + 0.8) / (1 - 0.8) = 9 rows; a white one
     in 1."""
