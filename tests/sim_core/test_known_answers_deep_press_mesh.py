@@ -64,7 +64,7 @@ LIMIT_STRETCH = 1.0 / np.sqrt(3.0)
 
 
 def deep_press_slide(gel_element: str, resolution: tuple[int, int, int], steps: int = SLID,
-                     mirror: bool = False) -> dict[str, np.ndarray]:
+                     mirror: bool = False, cut: str = "kuhn") -> dict[str, np.ndarray]:
     """The card scene's deep press-slide replayed to the end of its first slide (or its first ``steps`` steps) with
     the given gel law and mesh; with ``mirror`` its mirror image in x (the card clamped at its other edge, the pad
     started at the mirrored place, the slides along +x): the same problem on a gel mesh of the other handedness
@@ -78,7 +78,7 @@ def deep_press_slide(gel_element: str, resolution: tuple[int, int, int], steps: 
     """
     scene = scene_with(TRUE_PARAMS)
     scene = {**scene, "simulation": {**(scene.get("simulation") or {}), "gel_element": gel_element,
-                                     "gel_resolution": list(resolution)}}
+                                     "gel_resolution": list(resolution), "gel_cut": cut}}
     segments = DEEP_PRESS_SLIDE
     if mirror:
         sheet = scene["sheet"]
