@@ -62,7 +62,7 @@ edge collapses (StVK past the stretch ``1/sqrt(3)``) and stays collapsed after t
 StVK on the engine's own tet mesh (on two layers with each cell cut along the Kuhn split's mirror, as MuJoCo's grid
 cuts it in its own frame, the calibrated depth follows at whitened RMS 3.4-3.7; the split's handedness moved the
 Green-strain calibration by a fifth, the default law's by 4 %), a discretisation no law should copy; the gel's
-default cut (``simulation.gel_cut: mirrored``) has no handedness. And :func:`choose_gel_law`
+cut ``simulation.gel_cut: mirrored`` has no handedness. And :func:`choose_gel_law`
 before the calibration compares the laws at the scene's stick speed, where latency_s103's Green-strain replay leaves
 the recording (whitened RMS 28 after its step), so ``--gel-element auto`` keeps the default law on the one deep press
 the data's law follows. A choice worth its price there has to compare the laws at the calibrated stick speed.
