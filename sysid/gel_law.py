@@ -59,9 +59,10 @@ towards the null (latency_s103 markers / pixels / wrench 8.51 / 12.14 / 5.85 -> 
 row by row; nominal_s101 2.19 / 2.91 -> 1.78 / 2.35), but not the deep press-slides whose card buckles under the pad
 (stiction_s105 markers 10.07 -> 11.81, gel_creep_s108 11.26 -> 13.27, depth scale asked 0.4): there the pad's leading
 edge collapses (StVK past the stretch ``1/sqrt(3)``) and stays collapsed after the load is gone. The recorded edge is
-StVK on the engine's own tet mesh (on two layers with each cell cut along our split's mirror, as MuJoCo's grid cuts it
-in its own frame, the calibrated depth follows at whitened RMS 3.4-3.7; the split's handedness moves the Green-strain
-calibration by a fifth, the default law's by 4 %), a discretisation no law should copy. And :func:`choose_gel_law`
+StVK on the engine's own tet mesh (on two layers with each cell cut along the Kuhn split's mirror, as MuJoCo's grid
+cuts it in its own frame, the calibrated depth follows at whitened RMS 3.4-3.7; the split's handedness moved the
+Green-strain calibration by a fifth, the default law's by 4 %), a discretisation no law should copy; the gel's
+cut ``simulation.gel_cut: mirrored`` has no handedness. And :func:`choose_gel_law`
 before the calibration compares the laws at the scene's stick speed, where latency_s103's Green-strain replay leaves
 the recording (whitened RMS 28 after its step), so ``--gel-element auto`` keeps the default law on the one deep press
 the data's law follows. A choice worth its price there has to compare the laws at the calibrated stick speed.

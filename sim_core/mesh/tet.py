@@ -55,24 +55,65 @@ def _kuhn_cell_tets() -> np.ndarray:
     return np.stack(cells)
 
 
+TetCut = Literal["kuhn", "mirrored"]
+"""How :func:`tet_box` cuts its hexahedral cells (:data:`TET_CUTS`)."""
+
+TET_CUTS = ("kuhn", "mirrored")
+"""``"kuhn"``: every cell along its (0,0,0)-(1,1,1) diagonal, the same handedness everywhere (a mirror image of the
+box is a different mesh); ``"mirrored"``: each cell is the Kuhn cell reflected along every axis on which its index
+is odd in the box's lower half, and the mirror image of its partner's cut in the upper half
+(:func:`mirrored_cut_flags`): the mesh is its own mirror image about the box's mid-planes wherever the cell count
+along the mirrored axis is even, and, where it is odd, everywhere but the middle layer of cells."""
+
+
+def mirrored_cut_flags(cells: int) -> np.ndarray:
+    """Per cell along one axis, whether the ``"mirrored"`` cut reflects the Kuhn cell along that axis.
+
+    Cells ``i`` and ``cells - 1 - i`` get opposite flags (the box's mirror image about its mid-plane maps the one
+    cell's cut onto the other's), alternating from the first cell (``i mod 2``, the 3-D analogue of the card's
+    checkerboard: every interior vertex plane is also a mirror plane); with an odd count the middle cell, its own
+    image, keeps ``i mod 2``, the one cell whose cut a mirror image changes.
+
+    Args:
+        cells: cells along the axis, >= 1.
+
+    Returns:
+        shape ``(cells,)`` bool.
+    """
+    i = np.arange(int(cells))
+    flags = i % 2 == 1
+    upper = 2 * i > cells - 1
+    flags[upper] = ~flags[cells - 1 - i[upper]]
+    return flags
+
+
 def tet_box(
     size: Sequence[float],
     resolution: Sequence[int],
     origin: Sequence[float] = (0.0, 0.0, 0.0),
+    cut: TetCut = "kuhn",
 ) -> TetMesh:
-    """A structured tetrahedral box, each hexahedral cell split into 6 tets along its diagonal.
+    """A structured tetrahedral box, each hexahedral cell split into 6 tets along a main diagonal.
+
+    With ``cut="kuhn"`` every cell is split along its (0,0,0)-(1,1,1) diagonal (Kuhn / Freudenthal,
+    :func:`_kuhn_cell_tets`); with ``cut="mirrored"`` the cell ``(ix, iy, iz)`` is that split reflected along the
+    axes whose :func:`mirrored_cut_flags` are set. Both are conforming: a cell's square faces normal to an axis are
+    cut along the diagonal the other two axes' flags set, which the neighbour across that face shares (cf. the 2-D
+    "Union Jack" grid; Bey, "Simplicial grid refinement", Numer. Math. 85, 2000, on Freudenthal's split and its
+    reflections).
 
     Args:
         size: edge lengths ``(Lx, Ly, Lz)`` in m, each > 0.
         resolution: vertices per axis ``(nx, ny, nz)``, each >= 2.
         origin: position of the minimum corner in m.
+        cut: ``"kuhn"`` or ``"mirrored"`` (:data:`TET_CUTS`).
 
     Returns:
         :class:`TetMesh` with ``nx * ny * nz`` vertices (vertex ``(ix, iy, iz)`` at index
         ``(iz * ny + iy) * nx + ix``) and ``6 (nx-1)(ny-1)(nz-1)`` positively oriented tets.
 
     Raises:
-        ConfigError: non-positive size or resolution below 2.
+        ConfigError: non-positive size, resolution below 2 or an unknown cut.
     """
     size_arr = np.asarray(size, dtype=float)
     res = np.asarray(resolution)
@@ -80,6 +121,8 @@ def tet_box(
         raise ConfigError(f"tet_box size must be 3 positive lengths, got {size!r}")
     if res.shape != (3,) or np.any(res != np.round(res)) or np.any(res < 2):
         raise ConfigError(f"tet_box resolution must be 3 integers >= 2 (vertices per axis), got {resolution!r}")
+    if cut not in TET_CUTS:
+        raise ConfigError(f"tet_box cut must be one of {TET_CUTS}, got {cut!r}")
     nx, ny, nz = (int(r) for r in res)
     axes = [np.linspace(0.0, size_arr[d], int(res[d])) + float(origin[d]) for d in range(3)]
     zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
@@ -87,7 +130,14 @@ def tet_box(
 
     iz, iy, ix = np.meshgrid(np.arange(nz - 1), np.arange(ny - 1), np.arange(nx - 1), indexing="ij")
     base = np.stack([ix.ravel(), iy.ravel(), iz.ravel()], axis=1)  # (cells, 3)
-    corner = base[:, None, None, :] + _kuhn_cell_tets()[None]  # (cells, 6, 4, 3)
+    offsets = np.broadcast_to(_kuhn_cell_tets()[None], (len(base), 6, 4, 3)).copy()  # (cells, 6, 4, 3)
+    if cut == "mirrored":
+        flips = np.stack([mirrored_cut_flags(n - 1)[base[:, d]] for d, n in enumerate((nx, ny, nz))], axis=1)
+        offsets = np.where(flips[:, None, None, :], 1 - offsets, offsets)
+        # a reflection along an odd number of axes turns every tet inside out: swap two vertices back
+        odd = flips.sum(axis=1) % 2 == 1
+        offsets[odd] = offsets[odd][:, :, [0, 2, 1, 3]]
+    corner = base[:, None, None, :] + offsets
     tets = (corner[..., 2] * ny + corner[..., 1]) * nx + corner[..., 0]
     return TetMesh(x, tets.reshape(-1, 4).astype(np.int64))
 

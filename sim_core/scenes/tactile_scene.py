@@ -15,6 +15,7 @@ Optional extension block (not in INTERFACES.md v1; every key optional)::
       contact_eps_v: 0.01          # m/s, friction's stick speed (IPC mollifier)
       contact_eps: null            # m; default: half the sheet thickness
       gel_resolution: [8, 6, 5]    # gel tet-box vertices along sensor x, y, z (default_gel_resolution)
+      gel_cut: kuhn                # or mirrored: how the gel's cells are cut into tets (sim_core.mesh.tet.TET_CUTS)
       gel_element: stable_neohookean   # or nodal_pressure_neohookean (does not lock; sim_core.energies.nodal_pressure)
                                        # or green_strain (Saint Venant-Kirchhoff; sim_core.energies.green_strain)
                                        # or modified_stvk (Green-strain shear, (ln J)^2 volume; sim_core.energies.modified_stvk)
@@ -39,7 +40,7 @@ from sim_core.candidates.parameters import validate_candidate_parameters
 from sim_core.elastic import SOLID_ELEMENTS
 from sim_core.errors import ConfigError
 from sim_core.mesh.sheet import grid_sheet
-from sim_core.mesh.tet import tet_box
+from sim_core.mesh.tet import TET_CUTS, tet_box
 from sim_core.model import ContactSettings, Model, check_broad_phase
 from sim_core.sensors.camera import PinholeCamera
 from sim_core.sensors.markers import embed_markers, marker_grid
@@ -51,6 +52,7 @@ SIMULATION_KEYS = {
     "contact_eps_v": 0.01,
     "contact_eps": None,
     "gel_resolution": None,
+    "gel_cut": "kuhn",
     "gel_element": "stable_neohookean",
     "sheet_yield_angle": float("inf"),
     "damping": 0.0,
@@ -149,6 +151,13 @@ def _gel_element(name) -> str:
     return name
 
 
+def _gel_cut(name) -> str:
+    """``simulation.gel_cut``, checked: one of :data:`sim_core.mesh.tet.TET_CUTS`."""
+    if name not in TET_CUTS:
+        raise ConfigError(f"scene: simulation.gel_cut must be one of {TET_CUTS}, got {name!r}")
+    return name
+
+
 def build_tactile_scene(scene: dict) -> Model:
     """Build the Model of a validated scene v1 dictionary.
 
@@ -186,7 +195,8 @@ def build_tactile_scene(scene: dict) -> Model:
         gx, gy, gt = (float(v) for v in s["gel_size"])
         pitch = float(s["marker_pitch"])
         res = opts["gel_resolution"] or default_gel_resolution((gx, gy, gt), pitch)
-        gel = tet_box((gx, gy, gt), tuple(int(r) for r in res), (-gx / 2, -gy / 2, -gt))
+        gel = tet_box((gx, gy, gt), tuple(int(r) for r in res), (-gx / 2, -gy / 2, -gt),
+                      _gel_cut(opts["gel_cut"]))
         mount = np.asarray(s.get("mount") or [0, 0, 0, 0, 0, 0, 1], dtype=float)
         pose = np.asarray(effectors[eff_name]["initial_pose"], dtype=float)
         sensor_pose = compose_poses(pose, mount)

@@ -6,16 +6,17 @@ import numpy as np
 import pytest
 
 from sim_core.errors import ConfigError, MeshError
-from sim_core.mesh.tet import box_face_vertices, tet_box, tet_boundary_triangles, tet_rest_volume
+from sim_core.mesh.tet import (TET_CUTS, box_face_vertices, mirrored_cut_flags, tet_box, tet_boundary_triangles,
+                               tet_rest_volume)
 
 SIZE = (0.02, 0.03, 0.005)
 RES = (4, 5, 3)
 ORIGIN = (-0.01, 0.2, 1.0)
 
 
-@pytest.fixture()
-def box():
-    return tet_box(SIZE, RES, ORIGIN)
+@pytest.fixture(params=TET_CUTS)
+def box(request):
+    return tet_box(SIZE, RES, ORIGIN, cut=request.param)
 
 
 def test_volumes_positive_and_sum_to_box(box) -> None:
@@ -105,3 +106,55 @@ def test_box_face_vertices(box) -> None:
 def test_tet_box_rejects_bad_arguments(size, res, match) -> None:
     with pytest.raises(ConfigError, match=match):
         tet_box(size, res)
+    with pytest.raises(ConfigError, match="cut"):
+        tet_box((1, 1, 1), (2, 2, 2), cut="diagonal")
+
+
+def _tet_set(tets: np.ndarray) -> set[tuple[int, ...]]:
+    return {tuple(t) for t in np.sort(tets, axis=1).tolist()}
+
+
+def _mirror(res: tuple[int, int, int], axis: int) -> np.ndarray:
+    """Vertex index -> the index of its mirror image about the box's mid-plane normal to ``axis``."""
+    nx, ny, nz = res
+    iz, iy, ix = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    ijk = [ix.ravel(), iy.ravel(), iz.ravel()]
+    ijk[axis] = res[axis] - 1 - ijk[axis]
+    return (ijk[2] * ny + ijk[1]) * nx + ijk[0]
+
+
+@pytest.mark.parametrize("res", [(3, 3, 3), (5, 7, 3), (9, 7, 5)])
+def test_the_mirrored_cut_is_its_own_mirror_image_where_the_cells_are_even(res) -> None:
+    """With an even cell count along x and y the mirrored cut maps onto itself tet for tet under either mirror (the
+    Kuhn cut onto none of its tets: every cell's diagonal changes)."""
+    mirrored, kuhn = (tet_box((0.02, 0.015, 0.004), res, cut=cut) for cut in ("mirrored", "kuhn"))
+    for axis in (0, 1):
+        image = _mirror(res, axis)
+        assert _tet_set(image[mirrored.tets]) == _tet_set(mirrored.tets)
+        assert not _tet_set(image[kuhn.tets]) & _tet_set(kuhn.tets)
+
+
+def test_with_an_odd_cell_count_only_the_middle_layer_changes_in_the_mirror_image() -> None:
+    """``[8, 6, 5]`` (7 x 5 x 4 cells): the mirror image along x changes the 4 x 5 middle cells' 6 tets each, along y
+    the 7 x 4 middle cells'."""
+    res = (8, 6, 5)
+    mesh = tet_box((0.0186, 0.0143, 0.004), res, cut="mirrored")
+    own = _tet_set(mesh.tets)
+    assert len(own - _tet_set(_mirror(res, 0)[mesh.tets])) == 6 * 5 * 4
+    assert len(own - _tet_set(_mirror(res, 1)[mesh.tets])) == 6 * 7 * 4
+
+
+@pytest.mark.parametrize("cells", range(1, 10))
+def test_mirrored_cut_flags_alternate_and_are_opposite_in_mirror_partners(cells) -> None:
+    flags = mirrored_cut_flags(cells)
+    assert flags.shape == (cells,) and flags.dtype == bool
+    partners = [(i, cells - 1 - i) for i in range(cells) if i != cells - 1 - i]
+    assert all(flags[i] != flags[j] for i, j in partners)
+    lower = flags[: (cells + 1) // 2]
+    assert np.array_equal(lower, np.arange(len(lower)) % 2 == 1)
+
+
+def test_the_kuhn_cut_is_the_default() -> None:
+    a, b = tet_box(SIZE, RES, ORIGIN), tet_box(SIZE, RES, ORIGIN, cut="kuhn")
+    assert np.array_equal(a.tets, b.tets)
+    assert not np.array_equal(a.tets, tet_box(SIZE, RES, ORIGIN, cut="mirrored").tets)
