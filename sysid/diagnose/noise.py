@@ -98,7 +98,7 @@ def commanded_path(ev: Any) -> tuple[np.ndarray, bool]:
     t_pose = np.asarray(ev.t_ns["pose"], dtype=np.int64)
     pose = np.asarray(ev.pose, dtype=float)
     lin = resample_pose(np.asarray(ev.t_ns["pose_cmd"]), ev.pose_cmd, t_pose, outside="clamp")
-    taken = getattr(ev, "pose_cmd_taken", None)
+    taken = ev.pose_cmd_taken
     if taken is None or t_pose.shape[0] < 2 or len(taken[0]) == 0:
         return lin, False
     period = int(np.median(np.diff(t_pose)))
