@@ -98,6 +98,10 @@ class Evidence:
             ``"pose"`` / ``"pose_cmd"`` / ``"gripper_cmd"`` -> ``(t_ns (N,), values)``, poses
             ``(N, 7)``, openings ``(N,)`` m (:func:`sysid.bagio.reader.read_effector_streams`);
             empty for a version-1 scene (its one effector is the ``pose`` channel).
+        pose_cmd_taken: ``(t_ns (N,), poses (N, 7))``: the ``pose_cmd`` channel's commands stamped with
+            when the robot took them (their log time; the last of several taken at one time), the whole
+            recording (:attr:`sysid.bagio.reader.BagContents.pose_cmd_taken`); None without commands or
+            through a recording map.
     """
 
     source: EvidenceSource
@@ -117,6 +121,7 @@ class Evidence:
     channels_missing: dict[str, str] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
     effectors: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
+    pose_cmd_taken: tuple[np.ndarray, np.ndarray] | None = None
 
     def values(self, channel: str) -> np.ndarray:
         """The array of ``channel``.
@@ -327,7 +332,9 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
         source=EvidenceSource(bag.path, bag.mcap_path, bag.sha256, bag.scene_path, topics, bag.recording_map),
         scene=scene, t_ns=t_ns, clock_t_ns=clock.t_ns if clock is not None else None, noise=noise,
         channels_present=present, channels_missing=missing, notes=tuple(notes), effectors=effectors,
-        markers_uv_weight=weight, **arrays,
+        markers_uv_weight=weight, pose_cmd_taken=(None if bag.pose_cmd_taken is None or "pose_cmd" not in arrays
+                                                  else (bag.pose_cmd_taken.t_ns, bag.pose_cmd_taken.values)),
+        **arrays,
     )
 
 

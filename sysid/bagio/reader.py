@@ -146,6 +146,12 @@ class BagContents:
         recording_map: the recording map file used, or None (today's contract).
         camera: intrinsics from the map's ``camera_info`` topic (``fx fy cx cy width height``, and ``k1 k2``
             when it gives a distortion), or None.
+        pose_cmd_taken: the ``pose_cmd`` role's commands stamped with their log time, when the robot took
+            them (the sim node logs a command at the sim time it takes it, between steps; a commander that
+            falls behind a fast robot makes these a step or more later than the commands' header stamps,
+            several at one time), the last of several taken at one time kept (the one in force), the
+            whole recording (not cut to ``window_s``: a command taken before the window is in force in
+            it); None through a recording map or without commands.
     """
 
     path: Path
@@ -163,6 +169,7 @@ class BagContents:
     mcap_paths: tuple[Path, ...] = ()
     recording_map: Path | None = None
     camera: dict[str, float] | None = None
+    pose_cmd_taken: Series | None = None
 
     @property
     def message_count(self) -> int:
@@ -538,6 +545,7 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
 
     decoded: dict[str, tuple[str, str, tuple]] = {}
     camera = None
+    taken = None
     if recording_map is not None:
         decoded, camera = cell.decode_mapped(recording_map, raw, {t: i.msgtype for t, i in topics.items()}, str(path),
                                              _decode, warn, skip_roles)
@@ -555,6 +563,8 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
                 items = _commands_in_world(topic, items, warn)
             if items:
                 decoded[role] = (topic, info.msgtype, _decode(role, topic, items, info.msgtype, check_world=True))
+            if role == "pose_cmd" and items:
+                taken = _taken(topic, info.msgtype, items, decoded[role][2])
 
     series: dict[str, Series] = {}
     missing: list[str] = []
@@ -592,8 +602,20 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
         path=path, mcap_path=mcap_path, sha256=sha256_file(files), topics=topics, roles=role_topics,
         series=series, missing_roles=tuple(missing), scene=scene, scene_path=scene_path if scene else None,
         start_ns=start, end_ns=end, notes=tuple(notes), mcap_paths=tuple(files),
-        recording_map=map_path.absolute() if map_path is not None else None, camera=camera,
+        recording_map=map_path.absolute() if map_path is not None else None, camera=camera, pose_cmd_taken=taken,
     )
+
+
+def _taken(topic: str, msgtype: str, items: list[tuple[int, Any]], decoded: tuple) -> Series:
+    """The commands ``items`` (decoded by :func:`_decode`, file order) stamped with their log times, cleaned
+    as :func:`read_effector_streams` cleans them (the last of several taken at one time kept; their
+    warnings were given for the header stamps already)."""
+    _, values, names, frame = decoded
+    t_log = np.asarray([log for log, _ in items], dtype=np.int64)
+    t_ns, values, dropped, resorted = _clean("pose_cmd", topic, t_log, values, lambda _m: None, keep="last")
+    t_ns.setflags(write=False)
+    values.setflags(write=False)
+    return Series("pose_cmd", topic, msgtype, t_ns, values, names, frame, dropped, resorted)
 
 
 def _commands_in_world(topic: str, items: list[tuple[int, Any]], warn: Callable[[str], None]) -> list[tuple[int, Any]]:

@@ -20,7 +20,7 @@ from sim_core.series_drive import SeriesSpringDrive
 from sim_core.transforms import quat_to_matrix
 from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
-from sysid.bagio import BagWriter
+from sysid.bagio import BagWriter, codec
 from benchmarks.diagnose_bench import load_bench_scene
 
 NS = "/thinshell"
@@ -116,13 +116,60 @@ def add_noise(streams: dict, seed: int = 0) -> dict:
     return out
 
 
+def lagging_commander(lags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """When a robot that steps back to back takes the commands of a commander that falls behind it.
+
+    As the sim node and the commander run over DDS (``thinshell_ros.commander``): the commander sends
+    command ``j`` when it sees the clock at ``t_j`` (the start of step ``j``; header stamp ``t_j``), for
+    the end of that step; on a loaded machine it reaches the robot ``lags[j]`` steps late. Commands arrive
+    in order (one reliable publisher), so command ``j`` is taken at the start of step
+    ``a_j = max(a_{j-1}, j + lags[j])``, with every other command queued since (several at one time),
+    and logged then; the newest command taken controls the step, the last one before stays in force
+    while none arrives.
+
+    Args:
+        lags: steps each command arrives late, int ``(J,)`` >= 0 (all 0: the node's timing when idle).
+
+    Returns:
+        ``(taken (J,) the step at whose start each command is taken, in_force (J,) the command controlling
+        each step j, -1 before the first)``.
+    """
+    lags = np.asarray(lags, dtype=np.int64)
+    taken = np.maximum.accumulate(np.arange(lags.size) + lags)
+    in_force = np.searchsorted(taken, np.arange(lags.size), side="right") - 1
+    return taken, in_force
+
+
+def lagged_streams(scene: dict, params: dict, targets: np.ndarray, lags: np.ndarray) -> dict[str, np.ndarray]:
+    """:func:`simulate_streams` of a kinematic arm driven as :func:`lagging_commander` says: step ``j`` goes
+    to the target of the command in force (the initial pose before the first), and ``pose_cmd`` is the sim
+    node's command log: command ``j`` (``targets[j]``) stamped ``t_j`` and logged when taken
+    (``"pose_cmd_log_ns"``), several at one log time."""
+    taken, in_force = lagging_commander(lags)
+    start = np.asarray(scene["effectors"]["ee"]["initial_pose"], dtype=float)
+    held = np.array([targets[j] if j >= 0 else start for j in in_force])
+    out = simulate_streams(scene, params, held)
+    dt_ns = int(round(scene["dt"] * 1e9))
+    cut = taken < len(targets)  # commands taken after the last step are not in the recording
+    out["pose_cmd_t_ns"] = np.arange(len(targets), dtype=np.int64)[cut] * dt_ns
+    out["pose_cmd"] = np.asarray(targets, dtype=float)[cut]
+    out["pose_cmd_log_ns"] = taken[cut] * dt_ns
+    return out
+
+
 def write_bag(out_dir: Path, scene: dict, streams: dict, skip: tuple[str, ...] = ()) -> Path:
-    """Write ``streams`` as a rosbag2 MCAP bag with ``scene.yaml`` (topics of INTERFACES.md)."""
+    """Write ``streams`` as a rosbag2 MCAP bag with ``scene.yaml`` (topics of INTERFACES.md); the commands
+    at the sample stamps, or, with ``"pose_cmd_log_ns"`` (:func:`lagged_streams`), stamped
+    ``"pose_cmd_t_ns"`` and logged at those times."""
     with BagWriter(out_dir, scene=scene) as bag:
+        if "pose_cmd_log_ns" in streams:
+            for h, log, pose in zip(streams["pose_cmd_t_ns"], streams["pose_cmd_log_ns"], streams["pose_cmd"]):
+                bag.write_message(f"{NS}/ee/pose_cmd", codec.POSE_STAMPED, int(log), codec.pose_stamped(int(h), pose, "world"))
         for i, t in enumerate(streams["t_ns"]):
             t = int(t)
             bag.write_pose(f"{NS}/ee/pose", t, streams["pose"][i], "world")
-            bag.write_pose(f"{NS}/ee/pose_cmd", t, streams["pose_cmd"][i], "world")
+            if "pose_cmd_log_ns" not in streams:
+                bag.write_pose(f"{NS}/ee/pose_cmd", t, streams["pose_cmd"][i], "world")
             if "wrench" not in skip:
                 bag.write_wrench(f"{NS}/tactile/wrench", t, streams["wrench"][i], "tactile")
             if "markers" not in skip:

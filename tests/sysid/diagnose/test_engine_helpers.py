@@ -57,7 +57,7 @@ def _pose_model(noise_m=5e-6, seed=1):
     pose[:, :3] += rng.normal(size=(t.shape[0], 3)) * noise_m
     steps = np.arange(0, 990_000_001, 10_000_000, dtype=np.int64)
     ev = SimpleNamespace(channels_present=("pose", "pose_cmd"), t_ns={"pose": t_ns, "pose_cmd": t_ns},
-                         pose=pose, pose_cmd=cmd)
+                         pose=pose, pose_cmd=cmd, pose_cmd_taken=None)
     model = SimpleNamespace(evidence=ev, step_times_ns=steps, controls=None, scene={"effectors": {"ee": {}}},
                             effector="ee", _sim=object(), sigma={})
     return model, t_ns, truth, pose
