@@ -7,9 +7,12 @@ Schema ``thinshell.sysid.fit`` version 1::
       "fit": {
         "parameters": {name: {"initial", "value", "sigma", "sigma_scaled", "sigma_robust", "sigma_log",
                               "space": "log"|"linear", "lower", "upper",
-                              "identified": false where the robust 2-sigma interval of a positive parameter
-                                            reaches zero (sysid.covariance.not_identified), else true; null
-                                            without a robust sigma or for a linear-coordinate parameter,
+                              "identified": false where the recording does not identify it (sysid.identifiability:
+                                            its interval reaches a bound of its prior range), else true; null
+                                            without a robust sigma,
+                              "interval": {"lower", "upper", "prior": [lo, hi], "identified", "open_below",
+                                           "open_above", "source": "linearised"|"profile", "outside_prior",
+                                           "profile": [{"delta_u", "value", "z", "delta_cost"}]} | null,
                               "held": true where the fit held it at its start (sysid.fit.fit hold_unidentified)}},
         "correlation": {"names": [...], "matrix": [[...]]} | null,
         "covariance_u": [[...]] | null,       # Gauss-Newton (J^T W J)^-1 in the search coordinates
@@ -30,7 +33,8 @@ Schema ``thinshell.sysid.fit`` version 1::
 
 Infinite costs (failed replays) are written as null. ``fit.robust`` and ``sigma_robust`` (the 1-sigma
 that holds under model error, :mod:`sysid.covariance`) were added within version 1: a document
-without them still validates (they read as null).
+without them still validates (they read as null); so were ``identified``'s judgement against the prior range and
+``interval`` (:mod:`sysid.identifiability`).
 """
 
 from __future__ import annotations
@@ -119,8 +123,10 @@ def fit_document(result: Any, prov: Mapping[str, Any]) -> dict[str, Any]:
             "sigma_scaled": result.sigma_scaled[n] if result.sigma_scaled else None,
             "sigma_robust": (getattr(result, "sigma_robust", None) or {}).get(n),
             "sigma_log": (result.sigma_log or {}).get(n), "space": "log" if spec.log else "linear",
-            "identified": (None if not getattr(result, "sigma_robust", None) or not spec.log
+            "identified": (None if not getattr(result, "sigma_robust", None)
                            else n not in getattr(result, "not_identified", ())),
+            "interval": (None if n not in (getattr(result, "intervals", None) or {})
+                         else result.intervals[n].summary()),
             "held": n in getattr(result, "held", ()),
             "lower": spec.lower, "upper": spec.upper,
         }
