@@ -48,8 +48,8 @@ from sysid.wrench_check import check_wrench
 
 PROFILE_REPLAYS = 2
 """Default replays on each side of each fitted parameter's profile (:attr:`FitOptions.profile_replays`,
-:func:`sysid.identifiability.profile_intervals`): the robust 2-sigma end, and one point twice as far where the cost
-there is within the null's spread; a side still within it is reported open."""
+:func:`sysid.identifiability.profile_intervals`): the robust 2-sigma end (at most the prior's bound), and where the
+cost there is within the null's spread the prior's bound; a side still within it is reported open."""
 
 
 def available_cores() -> int:

@@ -30,14 +30,17 @@ keep.
 
 1. linearised, no replay: the robust 2-sigma interval ``value +- 2 sigma_robust`` (HAC plus the propagated nuisance
    priors, as reported); a side that reaches the prior's bound is open;
-2. with profile replays (:func:`profile_side`, ``sysid.fit.fit(profile_replays=N)``), for each parameter the
-   linearised rule identifies: each side's point at ``2 sigma_time`` (the HAC part) is replayed; where ``z`` there is
+2. with profile replays (:func:`profile_side`, ``sysid.fit.fit(profile_replays=N)``), for each parameter whose fitted
+   value lies in its prior range: each side's point at ``2 sigma_time`` (the HAC part; at most the prior's bound) is
+   replayed; where ``z`` there is
    below :data:`NULL_SIGMAS` the cost is flatter than its tangent said and the side walks out, doubling ``d``, the
    side's last replay at the prior's bound, to the first point with ``z >= NULL_SIGMAS`` (the side's end interpolated
    linearly in ``z``) or the prior's bound (the side is open; also where a replay diverged: a side not shown to close
    is not closed). The
-   side's width then adds the nuisance part in quadrature, and the interval is the union with the linearised one
-   (the profile only widens it);
+   side's width then adds the nuisance part in quadrature. Where the linearised rule closed both sides the interval is
+   the union with the linearised one (the profile only widens it); where it left a side open, the profile decides
+   (a cost that rises beyond the null's spread before the prior's bound closes the side, though its tangent at the
+   fit is flat);
 3. a parameter is identified where neither side is open; the reported interval is clipped to the prior range (the
    prior range itself where both sides are open).
 
@@ -305,11 +308,16 @@ def judge(specs: Sequence[ParameterSpec], values: Mapping[str, float], sigma_rob
 
 def profiled(spec: ParameterSpec, value: float, u_hat_j: float, linear: Interval, width_lo: float, width_hi: float,
              open_lo: bool, open_hi: bool, points: Sequence[ProfilePoint]) -> Interval:
-    """The :class:`Interval` of rule 2 from the two sides' widths (search units, the nuisance part added): the union of
-    the profile's interval and the linearised one, clipped to the prior range; a side :func:`profile_side` left open
-    reaches the prior's bound."""
-    lo_d = -math.inf if open_lo or linear.open_below else min(spec.to_value(u_hat_j - width_lo), linear.lower)
-    hi_d = math.inf if open_hi or linear.open_above else max(spec.to_value(u_hat_j + width_hi), linear.upper)
+    """The :class:`Interval` of rule 2 from the two sides' widths (search units, the nuisance part added), clipped to
+    the prior range; a side :func:`profile_side` left open reaches the prior's bound. Where the linearised rule closed
+    both sides the interval is the union with the linearised one (the replays widen a tangent's interval, they do not
+    narrow it); where it left a side open the replayed profile decides alone (the quadratic extrapolated to the prior's
+    bound is not evidence that the cost stays flat there)."""
+    lo_p, hi_p = spec.to_value(u_hat_j - width_lo), spec.to_value(u_hat_j + width_hi)
+    if linear.identified:
+        lo_p, hi_p = min(lo_p, linear.lower), max(hi_p, linear.upper)
+    lo_d = -math.inf if open_lo else lo_p
+    hi_d = math.inf if open_hi else hi_p
     return _clipped(spec.name, value, lo_d, hi_d, linear.prior, "profile", points)
 
 
@@ -344,7 +352,7 @@ def profile_intervals(residual: Callable[[np.ndarray], np.ndarray | None], specs
     plan = []
     for j, spec in enumerate(specs):
         iv = linear[spec.name]
-        if not iv.identified or replays < 1 or not s_time[j] > 0.0:
+        if iv.outside_prior or replays < 1 or not s_time[j] > 0.0:
             continue
         bounds = (u_hat[j] - spec.to_u(iv.prior[0]), spec.to_u(iv.prior[1]) - u_hat[j])
         plan.append((j, spec, profile_direction(J, j), bounds))
