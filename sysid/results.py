@@ -24,8 +24,9 @@ Schema ``thinshell.sysid.fit`` version 1::
       },
       "metrics": {"cost_initial", "cost_final", "reduced_chi2", "residual_count",
                   "rms_initial": {channel: {...}}, "rms_final": {channel: {...}}},
-      "diagnostics": {"status", "message", "iterations", "nfev", "njev", "sim_runs", "sim_time_s",
-                      "wall_time_s", "jacobian", "global_phase", "channels", "step_count", "dt",
+      "diagnostics": {"status", "message", "iterations", "nfev", "njev", "sim_runs" (the profile's replays
+                      included), "profile_runs", "sim_time_s", "wall_time_s", "jacobian", "global_phase", "channels",
+                      "step_count", "dt",
                       "loss_history": [{"eval", "phase", "cost", "time_s", "values"}], "warnings"},
       "provenance": {"bag", "bag_sha256", "scene", "t_max", "seed", "git_revision", "git_dirty",
                      "versions": {...}, "command", "created_utc", "host"}
@@ -149,6 +150,7 @@ def fit_document(result: Any, prov: Mapping[str, Any]) -> dict[str, Any]:
                         "sim_time_s": result.sim_time_s, "wall_time_s": result.wall_time_s,
                         "jacobian": result.jacobian, "global_phase": result.global_phase,
                         "channels": list(result.channels), "step_count": result.step_count, "dt": result.dt,
+                        "profile_runs": getattr(result, "profile_runs", 0),
                         "loss_history": history, "warnings": list(result.warnings)},
         "provenance": dict(prov),
     }
