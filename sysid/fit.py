@@ -47,7 +47,7 @@ from scipy.stats import qmc
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
 from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovariance, model_residual_times,
                               model_robust_covariance, nuisance_covariance)
-from sysid.identifiability import Interval, judge, not_identified_note, profile_intervals
+from sysid.identifiability import Interval, judge, lower_cost_note, not_identified_note, profile_intervals
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              DIFFERENCE_PARAMETERS, SensitivityJacobian, load_sensitivity, make_jacobian,
                              tangent_columns)
@@ -936,6 +936,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             profile_runs = problem.sim_runs - runs_before
     unidentified = tuple(n for n in names if not intervals[n].identified)
     notes.extend(not_identified_note(intervals[n]) for n in unidentified)
+    notes.extend(w for w in (lower_cost_note(intervals[n]) for n in names) if w)
     return FitResult(
         names=names, specs=tuple(specs), initial=start, values=values, sigma=sigma, sigma_log=sigma_log,
         sigma_scaled=scaled, covariance_u=cov, correlation=corr, cost_initial=cost0, cost_final=cost_best,

@@ -34,9 +34,10 @@ keep.
    value lies in its prior range: each side's point at ``2 sigma_time`` (the HAC part; at most the prior's bound) is
    replayed; where ``z`` there is
    below :data:`NULL_SIGMAS` the cost is flatter than its tangent said and the side walks out, doubling ``d``, the
-   side's last replay at the prior's bound, to the first point with ``z >= NULL_SIGMAS`` (the side's end interpolated
-   linearly in ``z``) or the prior's bound (the side is open; also where a replay diverged: a side not shown to close
-   is not closed). The
+   side's last replay at the prior's bound, to the first point with ``z >= NULL_SIGMAS`` (the side's end; where the
+   first point is excluded, the end interpolated on the line ``z`` proportional to ``d``); a side whose first
+   excluded point is the prior's bound, or none, is open (also where a replay diverged: a side not shown to close is
+   not closed). The
    side's width then adds the nuisance part in quadrature. Where the linearised rule closed both sides the interval is
    the union with the linearised one (the profile only widens it); where it left a side open, the profile decides
    (a cost that rises beyond the null's spread before the prior's bound closes the side, though its tangent at the
@@ -269,8 +270,11 @@ def profile_side(residual: Callable[[np.ndarray], np.ndarray | None], u_hat: np.
         known: residuals already replayed, by distance (the first point's, replayed beside the other parameters').
 
     Returns:
-        ``(width_u, open, points)``: the distance at which the profile crosses ``NULL_SIGMAS`` (``bound_u`` where it
-        does not before the bound, the replays run out or a replay diverges: then ``open``), and the points replayed.
+        ``(width_u, open, points)``: the side's end and whether it is open, and the points replayed. Where the first
+        point is excluded, the end is where ``z`` reaches ``NULL_SIGMAS`` on the line through the fit (``z`` grows in
+        proportion to ``d`` where the cost is quadratic); where the side walked out, the first excluded point (the
+        cost was flatter than its tangent near the fit, so nothing is interpolated across that), open where that is
+        the prior's bound, where no point is excluded before it, or where a replay diverged.
     """
     points: list[ProfilePoint] = []
     last_d, last_z = 0.0, 0.0
@@ -284,8 +288,9 @@ def profile_side(residual: Callable[[np.ndarray], np.ndarray | None], u_hat: np.
         z, dc = profile_z(r, e, J_others, times_s, bin_s, lag)
         points.append(ProfilePoint(sign * d, spec.to_value(float(u[j])), z, dc))
         if z >= NULL_SIGMAS * (1.0 - ROUND_OFF):
-            width = last_d + (d - last_d) * (NULL_SIGMAS - last_z) / (z - last_z) if math.isfinite(z) else d
-            return float(min(max(width, last_d), d)), False, points
+            if k:  # a walked-out side: the cost was flatter than its tangent near the fit; no interpolation across that
+                return (bound_u, True, points) if d >= bound_u else (float(d), False, points)
+            return float(d * min(NULL_SIGMAS / z, 1.0)) if math.isfinite(z) else float(d), False, points
         if d >= bound_u:
             return bound_u, True, points
         last_d, last_z = d, z
@@ -385,6 +390,18 @@ RECORD_TO_IDENTIFY = {
     "gel.youngs_modulus": "a press to a known depth with the force recorded",
 }
 """What a user must record to identify a parameter a recording left unidentified (the report's advice)."""
+
+
+def lower_cost_note(interval: Interval) -> str | None:
+    """A warning where a replayed point of the parameter's profile costs less than the fit (the fit did not reach the
+    cost's minimum along it: a rough cost, or a stop before the minimum), else None."""
+    better = [p for p in interval.points if math.isfinite(p.delta_cost) and p.delta_cost < 0.0]
+    if not better:
+        return None
+    best = min(better, key=lambda p: p.delta_cost)
+    return (f"{interval.name}: a point of its profile at {best.value:.4g} costs less than the fit at {interval.value:.4g} "
+            f"(whitened sum of squares {best.delta_cost:.4g}, the others re-fitted to first order): the fit did not "
+            "reach the cost's minimum along it, so its value is where the fit stopped, not the best the data allow")
 
 
 def not_identified_note(interval: Interval) -> str:

@@ -201,3 +201,24 @@ def test_a_press_identifies_the_gel_modulus_and_not_the_friction_it_never_loads(
     assert result.not_identified == ("friction.gel_sheet",)
     assert any(w.startswith("friction.gel_sheet is not identified") for w in result.warnings)
     assert result.profile_runs == sum(len(iv.points) for iv in result.intervals.values())
+
+
+def test_a_fit_that_stopped_short_of_the_minimum_is_named_by_a_cheaper_profile_point():
+    """A fit left 3 robust sigma short of the minimum in ``a``: the profile point toward the minimum costs less than
+    the fit, which the warning says (the value is where the fit stopped)."""
+    from sysid.identifiability import lower_cost_note
+
+    p = _Problem(seed=2)
+    u = p.fit()
+    J0, e0 = p.jacobian(u), p.residual(u)
+    s_a = math.sqrt(hac_covariance(J0, e0, p.t, DT).covariance_u[0, 0])
+    u_short = u - np.array([3.0 * s_a, 0.0])
+    J, e = p.jacobian(u_short), p.residual(u_short)
+    rob = hac_covariance(J, e, p.t, DT)
+    values = {s.name: s.to_value(float(x)) for s, x in zip(p.specs, u_short)}
+    sigma = {s.name: float(np.sqrt(rob.covariance_u[k, k])) for k, s in enumerate(p.specs)}
+    prior = {"a": (1.0 / 3.0, 3.0), "b": (0.8 / 3.0, 2.4)}
+    out = profile_intervals(p.residual, p.specs, u_short, J, e, rob, judge(p.specs, values, sigma, prior), p.t, DT, 2)
+    note = lower_cost_note(out["a"])
+    assert note is not None and note.startswith("a: a point of its profile at")
+    assert lower_cost_note(judge(p.specs, values, sigma, prior)["a"]) is None  # no replayed point, nothing claimed
