@@ -907,8 +907,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             notes.append(f"robust covariance: {err}")
         else:
             if J_nuisance is not None:
-                prior = np.array([nuisance_prior_u(n, problem.model.parameter_value(n), s) for n, s in nuisance.items()])
-                ncov, A = nuisance_covariance(J, J_nuisance, prior)
+                nuisance_sd = np.array([nuisance_prior_u(n, problem.model.parameter_value(n), s) for n, s in nuisance.items()])
+                ncov, A = nuisance_covariance(J, J_nuisance, nuisance_sd)
                 robust_cov = robust_cov.with_nuisance(ncov, {n: float(s) for n, s in nuisance.items()},
                                                       {n: A[:, k] for k, n in enumerate(nuisance)})
             sigma_robust = sigma_of(specs, values, robust_cov.covariance_u)
