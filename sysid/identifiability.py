@@ -34,10 +34,10 @@ keep.
    value lies in its prior range: each side's point at ``2 sigma_time`` (the HAC part; at most the prior's bound) is
    replayed; where ``z`` there is
    below :data:`NULL_SIGMAS` the cost is flatter than its tangent said and the side walks out, doubling ``d``, the
-   side's last replay at the prior's bound, to the first point with ``z >= NULL_SIGMAS`` (the side's end; where the
-   first point is excluded, the end interpolated on the line ``z`` proportional to ``d``); a side whose first
-   excluded point is the prior's bound, or none, is open (also where a replay diverged: a side not shown to close is
-   not closed). The
+   side's last replay at the prior's bound, to the first point with ``z >= NULL_SIGMAS`` (the side's end interpolated
+   in ``z``; where a point of the side costs less than the fit, which is then no minimum along it, the excluded point
+   itself); a side with no point excluded before the prior's bound is open (also where a replay diverged: a side not
+   shown to close is not closed). The
    side's width then adds the nuisance part in quadrature. Where the linearised rule closed both sides the interval is
    the union with the linearised one (the profile only widens it); where it left a side open, the profile decides
    (a cost that rises beyond the null's spread before the prior's bound closes the side, though its tangent at the
@@ -272,12 +272,14 @@ def profile_side(residual: Callable[[np.ndarray], np.ndarray | None], u_hat: np.
     Returns:
         ``(width_u, open, points)``: the side's end and whether it is open, and the points replayed. Where the first
         point is excluded, the end is where ``z`` reaches ``NULL_SIGMAS`` on the line through the fit (``z`` grows in
-        proportion to ``d`` where the cost is quadratic); where the side walked out, the first excluded point (the
-        cost was flatter than its tangent near the fit, so nothing is interpolated across that), open where that is
-        the prior's bound, where no point is excluded before it, or where a replay diverged.
+        proportion to ``d`` where the cost is quadratic); where the side walked out, interpolated linearly in ``z``
+        between the last point within the null's spread and the first beyond it, except where a point of the side
+        costs less than the fit (the fit is no minimum along it: a rough cost), where the end is the first excluded
+        point itself. Open where that end is the prior's bound, where no point is excluded before it, or where a
+        replay diverged.
     """
     points: list[ProfilePoint] = []
-    last_d, last_z = 0.0, 0.0
+    last_d, last_z, cheaper = 0.0, 0.0, False
     d = min(first_u, bound_u)
     for k in range(max(int(replays), 0)):
         u = np.asarray(u_hat, dtype=float) + sign * d * v
@@ -287,10 +289,14 @@ def profile_side(residual: Callable[[np.ndarray], np.ndarray | None], u_hat: np.
             return bound_u, True, points
         z, dc = profile_z(r, e, J_others, times_s, bin_s, lag)
         points.append(ProfilePoint(sign * d, spec.to_value(float(u[j])), z, dc))
+        cheaper = cheaper or dc < 0.0
         if z >= NULL_SIGMAS * (1.0 - ROUND_OFF):
-            if k:  # a walked-out side: the cost was flatter than its tangent near the fit; no interpolation across that
+            if not k:  # on the line through the fit (z proportional to d where the cost is quadratic)
+                return float(d * min(NULL_SIGMAS / z, 1.0)) if math.isfinite(z) else float(d), False, points
+            if cheaper or not math.isfinite(z):  # the fit is no minimum along it: nothing interpolated
                 return (bound_u, True, points) if d >= bound_u else (float(d), False, points)
-            return float(d * min(NULL_SIGMAS / z, 1.0)) if math.isfinite(z) else float(d), False, points
+            width = last_d + (d - last_d) * (NULL_SIGMAS - last_z) / (z - last_z)
+            return float(min(max(width, last_d), d)), False, points
         if d >= bound_u:
             return bound_u, True, points
         last_d, last_z = d, z
