@@ -383,7 +383,8 @@ def profile_intervals(residual: Callable[[np.ndarray], np.ndarray | None], specs
             known = {first: firsts[(j, sign)]} if (j, sign) in firsts else None
             width, is_open, pts = profile_side(residual, u_hat, v, j, spec, sign, first, bounds[k], e, J_others,
                                                times_s, bin_s, robust.lag_bins, replays, known)
-            sides.append((math.sqrt(width ** 2 + 4.0 * s_nuis2[j]), is_open, pts))
+            total = math.sqrt(width ** 2 + 4.0 * s_nuis2[j])  # a nuisance part past the prior's bound opens the side
+            sides.append((min(total, bounds[k]), is_open or total >= bounds[k], pts))
         (w_lo, open_lo, p_lo), (w_hi, open_hi, p_hi) = sides
         out[spec.name] = profiled(spec, linear[spec.name].value, float(u_hat[j]), linear[spec.name], w_lo, w_hi,
                                   open_lo, open_hi, [*reversed(p_lo), *p_hi])

@@ -234,3 +234,25 @@ def test_a_fit_that_stopped_short_of_the_minimum_is_named_by_a_cheaper_profile_p
     note = lower_cost_note(out["a"])
     assert note is not None and note.startswith("a: a point of its profile at")
     assert lower_cost_note(judge(p.specs, values, sigma, prior)["a"]) is None  # no replayed point, nothing claimed
+
+
+def test_a_nuisance_part_wider_than_the_prior_opens_the_side_without_overflow():
+    """The propagated nuisance priors' part of a parameter can exceed its whole prior range (a near-zero column makes
+    ``A = -(J^T J)^-1 J^T J_phi`` large): the side is then open, its end the prior's bound (a log parameter's width of
+    1e4 search units once overflowed ``exp``)."""
+    from sysid.covariance import RobustCovariance
+
+    p = _Problem(seed=0)
+    p.specs = [ParameterSpec("a", 1.0, True, 1e-3, 1e3), ParameterSpec("b", 0.0, False, -3.0, 3.0, 1.0)]
+    u = p.fit()  # a's log coordinate: the model is linear in u, the value exp(u)
+    J, e = p.jacobian(u), p.residual(u)
+    rob = hac_covariance(J, e, p.t, DT)
+    big = RobustCovariance("hac+nuisance", rob.covariance_u + np.diag([1e8, 0.0]), rob.lag_bins, rob.bin_s, rob.bins,
+                           rob.inflation, 0, rob.covariance_u, {"phi": 1.0}, {"phi": np.zeros(2)})
+    values = {s.name: s.to_value(float(x)) for s, x in zip(p.specs, u)}
+    sigma = {s.name: float(np.sqrt(big.covariance_u[k, k])) * (values[s.name] if s.log else 1.0)
+             for k, s in enumerate(p.specs)}
+    prior = {"a": (values["a"] / 3.0, values["a"] * 3.0), "b": (0.8 / 3.0, 2.4)}
+    out = profile_intervals(p.residual, p.specs, u, J, e, big, judge(p.specs, values, sigma, prior), p.t, DT, 2)
+    assert out["a"].open_below and out["a"].open_above and (out["a"].lower, out["a"].upper) == pytest.approx(prior["a"])
+    assert out["b"].identified
