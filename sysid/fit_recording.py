@@ -46,10 +46,12 @@ from sysid.results import fit_document, provenance, staged_directory, write_fit_
 from sysid.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
 from sysid.wrench_check import check_wrench
 
-PROFILE_REPLAYS = 2
+PROFILE_REPLAYS = 0
 """Default replays on each side of each fitted parameter's profile (:attr:`FitOptions.profile_replays`,
-:func:`sysid.identifiability.profile_intervals`): the robust 2-sigma end (at most the prior's bound), and where the
-cost there is within the null's spread the prior's bound; a side still within it is reported open."""
+:func:`sysid.identifiability.profile_intervals`): none, the linearised rule (the robust 2-sigma interval, floored at
+the Gauss-Newton one, against the prior range). ``--profile-replays 2`` replays each side's 2-sigma end and, where the
+cost there is within the null's spread, the prior's bound: on nominal_s101 13 replays, 663 CPU s for the whole job
+against ~170 without (docs/benchmarks_log.md, session 59, 49ident), too dear for the default."""
 
 
 def available_cores() -> int:
