@@ -28,7 +28,7 @@ from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_ROBUST_SIGMA, STOP_SIGMA, SYSID_STOP_RMS,
                        STOP_TRIAL_SIGMA)
-from sysid.fit_recording import FitOptions, available_cores, fit_recording
+from sysid.fit_recording import PROFILE_REPLAYS, FitOptions, available_cores, fit_recording
 from sysid.gel_law import AUTO_LAW, SCENE_LAW
 from sim_core.batch.sizing import batch_size_arg
 
@@ -167,6 +167,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="make every replay in this process, one after the other, as --workers 1 (default: with "
                         "--workers 2 or more the calibration's secant probe and the other gel law's replays run in a "
                         "second process, as thinshell diagnose's probe; the same replays and values)")
+    p.add_argument("--profile-replays", type=int, default=PROFILE_REPLAYS, metavar="N",
+                   help="replays on each side of each fitted parameter's profile that decide whether the recording "
+                        "identifies it (its cost against the null's spread within the prior range; sysid."
+                        f"identifiability; default {PROFILE_REPLAYS}; 0: the linearised rule, no replay)")
     p.add_argument("--hold-unidentified", action=argparse.BooleanOptionalAction, default=True,
                    help="hold a parameter whose robust 2-sigma interval reaches zero (at the start, or at any accepted "
                         "point) at its start value: no step along a direction the data do not determine; it is "
@@ -307,6 +311,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,
                       robust=None if args.robust == "none" else args.robust, drive=args.drive,
                       tack=args.tack, hold_unidentified=args.hold_unidentified,
+                      profile_replays=args.profile_replays,
                       first_step=args.first_step or None, fit_eps_v=args.fit_eps_v, wrench_check=args.wrench_check,
                       probe_worker=not args.one_process and args.workers > 1)
 
@@ -354,7 +359,9 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
         print(f"  {name}: {result.initial[name]:.6g} -> {result.values[name]:.6g}"
               + (f" +- {s:.3g} (Gauss-Newton)" if s is not None else "")
               + (f" +- {sr:.3g} ({method})" if sr is not None else "")
-              + (" NOT IDENTIFIED (robust 2-sigma interval reaches zero)" if name in result.not_identified else "")
+              + (f" NOT IDENTIFIED (the data give [{result.intervals[name].lower:.4g}, "
+                 f"{result.intervals[name].upper:.4g}] within the prior range [{result.intervals[name].prior[0]:.4g}, "
+                 f"{result.intervals[name].prior[1]:.4g}])" if name in result.not_identified else "")
               + (" (held at its start)" if name in result.held else ""))
     for ch, before in result.rms_initial.items():
         print(f"  rms {ch}: {before['rms']:.4g} -> {result.rms_final[ch]['rms']:.4g} {before['unit']}")

@@ -90,6 +90,29 @@ class RobustCovariance:
                                 np.sqrt(np.diag(total) / formal_var), self.resamples, base, dict(prior),
                                 {k: np.asarray(v, dtype=float) for k, v in shift_u.items()})
 
+    def floored(self, J: np.ndarray) -> "RobustCovariance":
+        """This covariance with its meat at least the white noise's of unit variance: ``H^-1/2 max(I, H^1/2 C H^1/2)
+        H^-1/2`` (``H = J^T J`` of the whitened Jacobian ``J`` ``(m, p)``, ``C`` :attr:`covariance_u`, the maximum taken
+        on the eigenvalues), so that no combination of the coordinates is known better than the sensor's own noise
+        allows ((J^T J)^-1, the Gauss-Newton covariance). The whitened residual is at least that noise (its level
+        estimated from the recording); a sandwich below it is the small-sample bias of a residual-based long-run
+        variance, whose lag window may reach half the bins (Andrews' cap) and whose scores sum to zero at the
+        optimum: this simulator's press of four steps (five bins, lag 2) gave the gel-card friction a HAC 1-sigma
+        0.0014 against the Gauss-Newton 0.198, and its own lift-fold 0.096 against 0.178, 2.2 sigma from the truth
+        (tests/sysid/test_identifiability.py, docs/benchmarks_log.md session 59, 49ident). ``inflation`` is
+        recomputed; a nuisance part (:meth:`with_nuisance`) is to be added after the floor."""
+        H = np.asarray(J, dtype=float).T @ np.asarray(J, dtype=float)
+        w, V = np.linalg.eigh(H)
+        if w.size == 0 or w[0] <= 1e-12 * w[-1]:
+            return self
+        half, inv_half = (V * np.sqrt(w)) @ V.T, (V / np.sqrt(w)) @ V.T
+        m, U = np.linalg.eigh(half @ self.covariance_u @ half)
+        cov = inv_half @ ((U * np.maximum(m, 1.0)) @ U.T) @ inv_half
+        cov = 0.5 * (cov + cov.T)
+        formal = np.diag((V / w) @ V.T)
+        return RobustCovariance(self.method, cov, self.lag_bins, self.bin_s, self.bins,
+                                np.sqrt(np.diag(cov) / formal), self.resamples)
+
     def summary(self) -> dict[str, Any]:
         """JSON-ready description (without the matrix)."""
         out = {"method": self.method, "lag_bins": int(self.lag_bins), "lag_s": float(self.lag_bins * self.bin_s),
@@ -318,23 +341,35 @@ def _channel_stamps(model: "ObservationModel") -> dict[str, np.ndarray]:
     return {ch: np.asarray(model.evidence.t_ns[ch]) for ch in model.channels}
 
 
+def model_residual_times(model: "ObservationModel") -> tuple[np.ndarray, float]:
+    """Time (s) of each element of ``model``'s whitened residual ``(m,)`` (:meth:`sysid.observation.ObservationModel.
+    residuals` order, each residual at its sample's stamp) and the time bin (s) of :func:`residual_bin_s`.
+
+    Raises:
+        CalibrationError: a fitted channel without stamps.
+    """
+    slices = model.channel_slices()
+    times = residual_times_s(_channel_stamps(model), {ch: sl.stop - sl.start for ch, sl in slices.items()},
+                             model.channels)
+    return times, residual_bin_s(model)
+
+
 def model_robust_covariance(model: "ObservationModel", J: np.ndarray, r: np.ndarray,
                             method: str = DEFAULT_ROBUST_METHOD, seed: int = 0) -> RobustCovariance:
     """Robust covariance (:func:`sysid.covariance.robust_covariance`) of a fit of ``model``: whitened Jacobian
     ``J (m, p)`` and residual ``r (m,)`` in :meth:`sysid.observation.ObservationModel.residuals` order, each residual
-    placed at its sample's stamp, binned at :func:`residual_bin_s`."""
-    slices = model.channel_slices()
-    times = residual_times_s(_channel_stamps(model), {ch: sl.stop - sl.start for ch, sl in slices.items()},
-                             model.channels)
-    return robust_covariance(method, J, r, times, residual_bin_s(model), seed=seed)
+    placed at its sample's stamp, binned at :func:`residual_bin_s` (:func:`model_residual_times`)."""
+    times, bin_s = model_residual_times(model)
+    return robust_covariance(method, J, r, times, bin_s, seed=seed)
 
 
 def not_identified(specs: Sequence[Any], values: Mapping[str, float],
                    sigma_robust: Mapping[str, float] | None) -> tuple[str, ...]:
-    """The positive parameters that a recording does not identify: those whose robust 2-sigma interval
-    ``value +- 2 sigma_robust`` (as the reports print it) reaches zero. The data then leave even the size of
-    the parameter open, and the fitted value is where the optimiser stopped along a direction the residual
-    barely sees, not a measurement.
+    """The positive parameters whose robust 2-sigma interval ``value +- 2 sigma_robust`` reaches zero: the data
+    leave even the size of the parameter open. The fit's search rule (:func:`sysid.fit_region.unidentified_coordinates`,
+    ``sysid.fit.fit(hold_unidentified=True)``: such a coordinate takes no step); what a fit reports as identified is
+    judged against the parameter's prior range and its cost's profile (:mod:`sysid.identifiability`), of which this
+    is the linearised rule on a log parameter's search range.
 
     Args:
         specs: the fitted parameters (:class:`sim_core.parameter_coordinates.ParameterSpec`; only those searched
@@ -349,11 +384,3 @@ def not_identified(specs: Sequence[Any], values: Mapping[str, float],
         return ()
     return tuple(s.name for s in specs if s.log and s.name in sigma_robust
                  and values[s.name] - 2.0 * sigma_robust[s.name] <= 0.0)
-
-
-def not_identified_note(name: str, value: float, sigma_robust: float) -> str:
-    """The warning for a parameter of :func:`not_identified`: its interval and what a user can do."""
-    return (f"{name} is not identified by this recording: its robust 2-sigma interval {value:.4g} +- "
-            f"{2.0 * sigma_robust:.3g} reaches zero, so the fitted value is where the fit stopped along a direction "
-            "the data barely see, not a measurement; keep the data-sheet value (leave it out of --params) or "
-            "record a motion that loads it")

@@ -45,8 +45,9 @@ from scipy.optimize import least_squares
 from scipy.stats import qmc
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
-from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovariance, model_robust_covariance,
-                              not_identified, not_identified_note, nuisance_covariance)
+from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovariance, model_residual_times,
+                              model_robust_covariance, nuisance_covariance)
+from sysid.identifiability import Interval, judge, lower_cost_note, not_identified_note, profile_intervals
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              DIFFERENCE_PARAMETERS, SensitivityJacobian, load_sensitivity, make_jacobian,
                              tangent_columns)
@@ -424,8 +425,10 @@ class FitResult:
         sigma_scale: channel -> the factor on its noise level in the fit's residual
             (``reweight_channels``), or None.
         sigma_robust: 1-sigma per parameter in its units from :attr:`robust` (None when not computed).
-        not_identified: the positive parameters whose robust 2-sigma interval reaches zero
-            (:func:`sysid.covariance.not_identified`); each has a line in ``warnings``.
+        not_identified: the parameters the recording does not identify (:mod:`sysid.identifiability`: their
+            interval reaches a bound of their prior range); each has a line in ``warnings``.
+        intervals: name -> :class:`sysid.identifiability.Interval`: the interval the data give and the verdict.
+        profile_runs: replays of the parameters' profiles (``profile_replays``; also in ``sim_runs``).
         robust: the robust covariance of the coordinates (:class:`sysid.covariance.RobustCovariance`:
             method, ``(p, p)`` matrix, lag window), or None (``robust=None``, or no Jacobian).
         held: the parameters :func:`fit` ``hold_unidentified`` held at their start at the last accepted point
@@ -470,6 +473,8 @@ class FitResult:
     not_identified: tuple[str, ...] = ()
     robust: RobustCovariance | None = None
     held: tuple[str, ...] = ()
+    intervals: dict[str, Interval] = field(default_factory=dict)
+    profile_runs: int = 0
 
 
 def gauss_newton_covariance(J: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray | None, str]:
@@ -567,7 +572,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         batch_size: int | str | None = None, robust: str | None = DEFAULT_ROBUST_METHOD,
         stop_robust_sigma: float | None = None, stop_trial_robust: bool = False,
         nuisance: Mapping[str, float] | None = None, hold_unidentified: bool = False,
-        first_step: float | None = None, made: Any = None) -> FitResult:
+        first_step: float | None = None, made: Any = None,
+        prior: Mapping[str, tuple[float, float]] | None = None, profile_replays: int = 0) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -679,6 +685,13 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             sysid``: the calibration's secant step, at the fit's start): the start's joint evaluation takes it where
             it is the same replay (its parameters bitwise, its drive, the tangent columns
             :func:`joint_tangent_names` gives), instead of replaying. None: none.
+        prior: name -> the range ``(lower, upper)`` (parameter units) the user's data sheet leaves open for a fitted
+            parameter (:func:`sysid.identifiability.prior_ranges`); a parameter without one is judged on its search
+            bounds. Whether the recording identifies each parameter and the interval reported are judged against it
+            (:mod:`sysid.identifiability`, :attr:`FitResult.intervals`); the search is not bounded by it.
+        profile_replays: replays allowed on each side of each parameter's profile (:func:`sysid.identifiability.
+            profile_intervals`: the robust interval's ends replayed, widened where the cost is flatter than its
+            tangent said); 0: the linearised rule alone (no replay).
 
     Returns:
         the :class:`FitResult`.
@@ -888,13 +901,14 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     r_best = problem._cache.get(np.asarray(u_best, dtype=float).tobytes())
     if robust is not None and cov is not None and r_best is not None:
         try:
-            robust_cov = model_robust_covariance(model, J, r_best, robust, seed)
+            # no better than the sensor's own noise allows (the sandwich's small-sample bias; the stops keep it raw)
+            robust_cov = model_robust_covariance(model, J, r_best, robust, seed).floored(J)
         except CalibrationError as err:
             notes.append(f"robust covariance: {err}")
         else:
             if J_nuisance is not None:
-                prior = np.array([nuisance_prior_u(n, problem.model.parameter_value(n), s) for n, s in nuisance.items()])
-                ncov, A = nuisance_covariance(J, J_nuisance, prior)
+                nuisance_sd = np.array([nuisance_prior_u(n, problem.model.parameter_value(n), s) for n, s in nuisance.items()])
+                ncov, A = nuisance_covariance(J, J_nuisance, nuisance_sd)
                 robust_cov = robust_cov.with_nuisance(ncov, {n: float(s) for n, s in nuisance.items()},
                                                       {n: A[:, k] for k, n in enumerate(nuisance)})
             sigma_robust = sigma_of(specs, values, robust_cov.covariance_u)
@@ -902,8 +916,27 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     notes.extend(f"{n} was held at its start value {values[n]:.4g} by the fit: at the last accepted point its robust "
                  "2-sigma interval reached zero, so no step was taken along it (a step there is set by the trust "
                  "region's size, not by the data)" for n in held)
-    unidentified = not_identified(specs, values, sigma_robust)
-    notes.extend(not_identified_note(n, values[n], sigma_robust[n]) for n in unidentified)
+    intervals = judge(specs, values, sigma_robust, prior)
+    profile_runs = 0
+    if profile_replays and robust_cov is not None and r_best is not None:
+        saved = model.warm_start, model.sigma_scale
+        model.warm_start, model.sigma_scale = None, channel_scale  # cold replays in the fit's units
+        problem.deadline, problem.max_replays = None, None  # the verdict is not cut short by the search's budgets
+        runs_before = problem.sim_runs
+        try:
+            times, bin_s = model_residual_times(model)
+            intervals = profile_intervals(lambda u: problem.residual(u, phase="profile"), specs, u_best, J, r_best,
+                                          robust_cov, intervals, times, bin_s, profile_replays,
+                                          many=lambda pts: problem.evaluate_many(pts, phase="profile"))
+        except CalibrationError as err:
+            notes.append(f"profile of the fitted parameters not computed ({err}); the linearised rule stands")
+        finally:
+            problem.close()
+            model.warm_start, model.sigma_scale = saved
+            profile_runs = problem.sim_runs - runs_before
+    unidentified = tuple(n for n in names if not intervals[n].identified)
+    notes.extend(not_identified_note(intervals[n]) for n in unidentified)
+    notes.extend(w for w in (lower_cost_note(intervals[n]) for n in names) if w)
     return FitResult(
         names=names, specs=tuple(specs), initial=start, values=values, sigma=sigma, sigma_log=sigma_log,
         sigma_scaled=scaled, covariance_u=cov, correlation=corr, cost_initial=cost0, cost_final=cost_best,
@@ -914,7 +947,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         jacobian=provider.name, global_phase=global_info, channels=model.channels,
         residual_count=m, step_count=model.step_count, dt=model.dt, warnings=notes, model=model,
         sigma_scale=channel_scale, sigma_robust=sigma_robust, robust=robust_cov, not_identified=unidentified,
-        held=held,
+        held=held, intervals=intervals, profile_runs=profile_runs,
     )
 
 

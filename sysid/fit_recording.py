@@ -25,7 +25,7 @@ from typing import Callable, Sequence
 from sim_core.elastic import SOLID_ELEMENTS
 from sim_core.errors import ConfigError
 from sim_core.scenes.tactile_scene import SIMULATION_KEYS
-from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
+from sysid.calibration import CALIBRATION_BOUNDS, CALIBRATION_REPLAYS, CalibrationResult, calibrate
 from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.diagnose.probe_worker import calibration_probe
@@ -35,6 +35,7 @@ from sysid.gain_prior import GainPrior
 from sysid.gain_profile import GainProfile
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, STOP_ROBUST_SIGMA, STOP_SIGMA, SYSID_STOP_RMS, STOP_TRIAL_SIGMA, Evaluation,
                        FitResult, fit, joint_nuisance, joint_tangent_names)
+from sysid.identifiability import prior_ranges
 from sysid.gel_law import (AUTO_LAW, ask_beside, auto_not_applicable, choose_at_start, gel_mesh, model_parameters,
                            other_law)
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
@@ -44,6 +45,13 @@ from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
 from sysid.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
 from sysid.wrench_check import check_wrench
+
+PROFILE_REPLAYS = 0
+"""Default replays on each side of each fitted parameter's profile (:attr:`FitOptions.profile_replays`,
+:func:`sysid.identifiability.profile_intervals`): none, the linearised rule (the robust 2-sigma interval, floored at
+the Gauss-Newton one, against the prior range). ``--profile-replays 2`` replays each side's 2-sigma end and, where the
+cost there is within the null's spread, the prior's bound: on nominal_s101 13 replays, 663 CPU s for the whole job
+against ~170 without (docs/benchmarks_log.md, session 59, 49ident), too dear for the default."""
 
 
 def available_cores() -> int:
@@ -142,6 +150,10 @@ class FitOptions:
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely
             see happened to land. False: every parameter is stepped.
+        profile_replays: replays on each side of each fitted parameter's profile that judge whether the recording
+            identifies it (:mod:`sysid.identifiability`; default :data:`PROFILE_REPLAYS`; 0: the linearised rule,
+            no replay). Every fitted parameter is judged against its prior range (:data:`sysid.calibration.
+            CALIBRATION_BOUNDS` around the fit's start) either way.
         first_step: width of the fit's first trust region per search coordinate (:func:`sysid.fit.fit`
             ``first_step``; default :data:`sysid.fit.FIRST_STEP`, a factor 1.65 on a log parameter); None: the
             method's own (a factor 13.8 within the default bounds).
@@ -206,6 +218,7 @@ class FitOptions:
     tack: bool = False
     hold_unidentified: bool = True
     first_step: float | None = FIRST_STEP
+    profile_replays: int = PROFILE_REPLAYS
     fit_eps_v: bool = True
     wrench_check: bool = True
     probe_worker: bool = True
@@ -411,8 +424,11 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                     stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
                     batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
                     stop_trial_robust=options.stop_trial_robust, hold_unidentified=options.hold_unidentified,
-                    first_step=options.first_step, reweight_channels=layer_on)
-    result = fit(model, fitted, nuisance=nuisance, made=start, **fit_args)
+                    first_step=options.first_step, reweight_channels=layer_on,
+                    profile_replays=options.profile_replays)
+    # judged against what a data sheet leaves open around the fit's start (sysid.identifiability)
+    prior = prior_ranges({n: model.parameter_value(n) for n in fitted}, CALIBRATION_BOUNDS)
+    result = fit(model, fitted, nuisance=nuisance, made=start, prior=prior, **fit_args)
     fit_replays = [result.sim_runs]
     result.warnings[:0] = list(notes)
     if wrench is not None and wrench.tripped:

@@ -221,6 +221,28 @@ def _interval(value: Any, sigma: Any) -> str:
     return f"[{value - 2.0 * sigma:.4g}, {value + 2.0 * sigma:.4g}]"
 
 
+def _reported_interval(p: Mapping[str, Any]) -> str:
+    """The interval :mod:`sysid.identifiability` reports (the robust 2-sigma one where a document has none)."""
+    iv = p.get("interval")
+    if not iv:
+        return _interval(p["value"], p.get("sigma_robust"))
+    return f"[{iv['lower']:.4g}, {iv['upper']:.4g}]" + (" (profile)" if iv["source"] == "profile" else "")
+
+
+def _verdict(p: Mapping[str, Any]) -> str:
+    """``yes``, or NOT IDENTIFIED with the open sides and the prior range."""
+    iv = p.get("interval")
+    if p.get("identified") is None:
+        return "-"
+    if p["identified"]:
+        return "yes"
+    if not iv:
+        return "NOT IDENTIFIED"
+    sides = [s for s, o in (("below", iv["open_below"]), ("above", iv["open_above"])) if o]
+    return (f"NOT IDENTIFIED (open {' and '.join(sides)} within the prior {iv['prior'][0]:.4g}-{iv['prior'][1]:.4g})"
+            if sides else "NOT IDENTIFIED (outside the prior range)")
+
+
 def robust_note(doc: Mapping[str, Any]) -> str:
     """One sentence naming the robust covariance method of a ``fit.json`` document and its lag window."""
     robust = doc["fit"].get("robust")
@@ -243,7 +265,7 @@ def _tables(doc: Mapping[str, Any]) -> list[tuple[str, list[str], list[list[str]
     params = doc["fit"]["parameters"]
     robust = doc["fit"].get("robust")
     p_rows = [[n, _fmt(p["initial"]), _fmt(p["value"]), _fmt(p["sigma"]), _fmt(p["sigma_scaled"]),
-               _fmt(p.get("sigma_robust")), _interval(p["value"], p.get("sigma_robust")), p["space"]]
+               _fmt(p.get("sigma_robust")), _reported_interval(p), _verdict(p), p["space"]]
               for n, p in params.items()]
     m = doc["metrics"]
     r_rows = []
@@ -253,7 +275,8 @@ def _tables(doc: Mapping[str, Any]) -> list[tuple[str, list[str], list[list[str]
                        _fmt(after["whitened_rms"]), "yes" if after["fitted"] else "no"])
     method = robust["method"] if robust else "robust"
     tables = [("Parameters", ["parameter", "nominal", "fitted", "1-sigma (GN)", "1-sigma x sqrt(chi2_red)",
-                              f"1-sigma ({method})", f"2-sigma interval ({method})", "space"], p_rows),
+                              f"1-sigma ({method})", "interval (2-sigma, within the prior range)", "identified",
+                              "space"], p_rows),
               ("Per-channel RMS (recording - simulation)",
                ["channel", "unit", "RMS nominal", "RMS fitted", "whitened nominal", "whitened fitted", "fitted"], r_rows)]
     gains = (doc["diagnostics"].get("sensor_calibration") or {}).get("gains") or {}

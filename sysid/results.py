@@ -7,9 +7,12 @@ Schema ``thinshell.sysid.fit`` version 1::
       "fit": {
         "parameters": {name: {"initial", "value", "sigma", "sigma_scaled", "sigma_robust", "sigma_log",
                               "space": "log"|"linear", "lower", "upper",
-                              "identified": false where the robust 2-sigma interval of a positive parameter
-                                            reaches zero (sysid.covariance.not_identified), else true; null
-                                            without a robust sigma or for a linear-coordinate parameter,
+                              "identified": false where the recording does not identify it (sysid.identifiability:
+                                            its interval reaches a bound of its prior range), else true; null
+                                            without a robust sigma,
+                              "interval": {"lower", "upper", "prior": [lo, hi], "identified", "open_below",
+                                           "open_above", "source": "linearised"|"profile", "outside_prior",
+                                           "profile": [{"delta_u", "value", "z", "delta_cost"}]} | null,
                               "held": true where the fit held it at its start (sysid.fit.fit hold_unidentified)}},
         "correlation": {"names": [...], "matrix": [[...]]} | null,
         "covariance_u": [[...]] | null,       # Gauss-Newton (J^T W J)^-1 in the search coordinates
@@ -21,8 +24,9 @@ Schema ``thinshell.sysid.fit`` version 1::
       },
       "metrics": {"cost_initial", "cost_final", "reduced_chi2", "residual_count",
                   "rms_initial": {channel: {...}}, "rms_final": {channel: {...}}},
-      "diagnostics": {"status", "message", "iterations", "nfev", "njev", "sim_runs", "sim_time_s",
-                      "wall_time_s", "jacobian", "global_phase", "channels", "step_count", "dt",
+      "diagnostics": {"status", "message", "iterations", "nfev", "njev", "sim_runs" (the profile's replays
+                      included), "profile_runs", "sim_time_s", "wall_time_s", "jacobian", "global_phase", "channels",
+                      "step_count", "dt",
                       "loss_history": [{"eval", "phase", "cost", "time_s", "values"}], "warnings"},
       "provenance": {"bag", "bag_sha256", "scene", "t_max", "seed", "git_revision", "git_dirty",
                      "versions": {...}, "command", "created_utc", "host"}
@@ -30,7 +34,8 @@ Schema ``thinshell.sysid.fit`` version 1::
 
 Infinite costs (failed replays) are written as null. ``fit.robust`` and ``sigma_robust`` (the 1-sigma
 that holds under model error, :mod:`sysid.covariance`) were added within version 1: a document
-without them still validates (they read as null).
+without them still validates (they read as null); so were ``identified``'s judgement against the prior range and
+``interval`` (:mod:`sysid.identifiability`).
 """
 
 from __future__ import annotations
@@ -119,8 +124,10 @@ def fit_document(result: Any, prov: Mapping[str, Any]) -> dict[str, Any]:
             "sigma_scaled": result.sigma_scaled[n] if result.sigma_scaled else None,
             "sigma_robust": (getattr(result, "sigma_robust", None) or {}).get(n),
             "sigma_log": (result.sigma_log or {}).get(n), "space": "log" if spec.log else "linear",
-            "identified": (None if not getattr(result, "sigma_robust", None) or not spec.log
+            "identified": (None if not getattr(result, "sigma_robust", None)
                            else n not in getattr(result, "not_identified", ())),
+            "interval": (None if n not in (getattr(result, "intervals", None) or {})
+                         else result.intervals[n].summary()),
             "held": n in getattr(result, "held", ()),
             "lower": spec.lower, "upper": spec.upper,
         }
@@ -143,6 +150,7 @@ def fit_document(result: Any, prov: Mapping[str, Any]) -> dict[str, Any]:
                         "sim_time_s": result.sim_time_s, "wall_time_s": result.wall_time_s,
                         "jacobian": result.jacobian, "global_phase": result.global_phase,
                         "channels": list(result.channels), "step_count": result.step_count, "dt": result.dt,
+                        "profile_runs": getattr(result, "profile_runs", 0),
                         "loss_history": history, "warnings": list(result.warnings)},
         "provenance": dict(prov),
     }

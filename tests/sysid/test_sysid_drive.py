@@ -154,7 +154,7 @@ def test_sysid_defaults_find_the_arm_and_recover_the_materials_from_starts_20_pe
     assert all(params[n]["held"] is False for n in FITTED if n != "sheet.bending_stiffness")
     # with the held coordinate's column orthogonal rather than zero (sysid.fit_region.held_jacobian) the trust region's
     # steps are Gauss-Newton's, not the region's boundary: 6 replays (11 with the column zeroed, two trials rejected)
-    assert doc["diagnostics"]["sim_runs"] <= 8, doc["diagnostics"]["sim_runs"]
+    assert doc["diagnostics"]["sim_runs"] - doc["diagnostics"]["profile_runs"] <= 8, doc["diagnostics"]
     assert any(w.startswith("sheet.bending_stiffness is not identified") for w in doc["diagnostics"]["warnings"])
     assert "NOT IDENTIFIED" in next(l for l in captured.out.splitlines() if "sheet.bending_stiffness:" in l)
     assert all(params[n]["identified"] is True for n in FITTED if n != "sheet.bending_stiffness")
