@@ -44,6 +44,9 @@ class SolverConfig:
             projection's added curvature holds the update to a fraction of the way out, and the iterate
             creeps away from the saddle by a few per cent an iteration). Each doubling costs one energy
             evaluation and is kept only where it lowers the energy (Armijo); ``max_displacement`` bounds it.
+            An iteration whose exact Newton matrix was used is not extended (a step without projected
+            iterations is the same bit for bit). A lockstep batch (``lockstep``) ignores it: its copies' line
+            search only backtracks.
         max_displacement: cap on any vertex's move per iteration, m (None: 0.5 * contact eps + 2 mm).
         projection: PSD projection of element Hessians ("clamp", "abs", "none").
         exact_hessian_first: each iteration, first factorise the exact (unprojected) Hessian and
