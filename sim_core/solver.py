@@ -873,8 +873,8 @@ class NewtonSolver:
         potential (a sheet at its buckling load) the projected Newton update moves along the unstable mode by
         ``|lambda| / (mu + |lambda|)`` of the way a unit step needs (``lambda < 0`` the exact curvature along it,
         ``mu`` the projected matrix's), and the iterates leave the saddle by that factor an iteration: nominal_s101
-        from +30 % (bending, gel modulus, friction x1.3), step 189, the card's lowest exact eigenvalue -0.72 N/m
-        against a projected curvature of ~9 N/m, the update grew 8 % an iteration and the step's 60 Newton
+        from +30 % (bending, gel modulus, friction x1.3), step 189: the card's lowest exact eigenvalue -0.72 N/m, the
+        update grew 8 % an iteration (a projected curvature of ~9 N/m along the mode) and the step's 60 Newton
         iterations ran out before the exact Hessian turned positive definite. The expansion phase of a line search
         (Nocedal & Wright, Numerical Optimization, 2nd ed., 2006, Alg. 3.5: the trial step increased while the
         energy decreases) goes the rest of the way along the update in energy evaluations; an update along which
