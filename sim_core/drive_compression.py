@@ -50,7 +50,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from sim_core.errors import ConfigError
-from sim_core.symmetric_pattern import upper_quadratic_form
 
 
 @dataclass(frozen=True)
@@ -237,15 +236,6 @@ class CompressionPotential:
         full = inner + sp.triu(inner, k=1).T
         return sp.bmat([[full, sp.csr_matrix(column[:, None])],
                         [sp.csr_matrix(column[None, :]), sp.csr_matrix([[corner]])]], format="csr")
-
-    def curvature(self, inner: sp.csr_matrix, column: np.ndarray, corner: float, d: np.ndarray) -> float:
-        """The reduced Newton matrix's quadratic form ``q^T [A u; u^T c] q`` (J) at the reduced coordinates ``q =
-        (dx_f, db)`` of an update ``d = S q`` ``(3 n,)`` (:meth:`update`): ``dx_f`` its entries on the kinematic
-        step's free DoFs, ``db`` the base's mean move along ``-n``; ``inner``, ``column``, ``corner`` are
-        :meth:`border`'s (``inner`` an upper triangle with the diagonal)."""
-        dx = np.where(self.free, d, 0.0)
-        db = float(self.tied @ d) / float(self.tied @ self.tied)
-        return upper_quadratic_form(inner, dx) + 2.0 * db * float(column @ dx) + corner * db * db
 
     def direction(self, solve, g: np.ndarray, column: np.ndarray, corner: float,
                   definite: bool = True) -> np.ndarray | None:

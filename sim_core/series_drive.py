@@ -211,11 +211,9 @@ class SeriesSpringDrive:
                 sim.step(dataclasses.replace(control, compression=unknown))
             except SimulationDivergedError:
                 # the step again by the secant from the same start state (Simulation.step replaces the state only
-                # where it succeeds), a safety net: a joint Newton solve that fails is not the end of the replay where
-                # the secant's whole-step solves converge. (nominal_s101 from +30 %, step 189, stalled at a saddle of
-                # the step's potential, the card buckling: the projected updates crept away from it for 60 iterations,
-                # the secant's first evaluation for 59; the solver's expansion of such updates,
-                # SolverConfig.max_expansions, solves it jointly in 26: docs/benchmarks_log.md, session 59, 49stall)
+                # where it succeeds): a joint Newton solve that stalls (nominal_s101 from +30 %, step 189: the update
+                # held at ~1e-3 m/s for 60 iterations, docs/benchmarks_log.md, session 58, lead) is not the end of
+                # the replay where the secant's whole-step solves converge
                 sim.step_totals, tried = totals0, 1
             else:
                 tool = np.asarray(sim.state.effector_pose[self.effector], dtype=float)[:3]

@@ -52,7 +52,6 @@ from sim_core.state import State
 from sim_core.newton_stop import accept, largest_move, line_search_failure_acceptance, rate_stops, stop_reason
 from sim_core.step_terms import FreeDofs, StepTerms, contact_force
 from sim_core.step_info import RELAXED_STOPS, STRICT_STOPS, StepInfo, StepRecord, StepTotals
-from sim_core.symmetric_pattern import upper_quadratic_form
 from sim_core.workspace import Workspace
 
 __all__ = ["NewtonSolver", "SolverConfig", "StepInfo", "StepRecord", "StepTotals", "STRICT_STOPS", "RELAXED_STOPS"]
@@ -600,7 +599,7 @@ class NewtonSolver:
                     accept(self.config, info, it, residual_bar, "simplified")
                     return x, H, projection, factorization
             active_before = None
-            d, H, projection, factorization, curvature = self._newton_direction(step, x, g, contact_terms, it, info)
+            d, H, projection, factorization = self._newton_direction(step, x, g, contact_terms, it, info)
             d3 = d.reshape(-1, 3)
             step_max = largest_move(d)
             residual = step_max / dt
@@ -660,10 +659,8 @@ class NewtonSolver:
                     continue
                 raise self._diverged(step, f"line search failed at Newton iteration {it} (no decrease along "
                                            f"the Newton direction; residual {residual:.3g} m/s)")
-            full_step = alpha == 1.0 and backtracks == 0
-            if curvature is not None and full_step and not rate_stop:
-                x_new = self._expansion(step, x, x_new, d3, e0, slope, curvature, contact_terms, x_search, info)
             x = x_new
+            full_step = alpha == 1.0 and backtracks == 0
             simplified_ok = (step.simplified and full_step and projection == "none"
                              and factorization is self.linear_solver)
             if backtracks >= cfg.stale_side_backtracks:
@@ -762,29 +759,25 @@ class NewtonSolver:
         return self._refactorised
 
     def _newton_direction(self, step: StepTerms, x: np.ndarray, g: np.ndarray, contact_terms: list, it: int,
-                          info: StepInfo) -> tuple[np.ndarray, sp.csr_matrix, str, LinearSolver | SymmetricSolver,
-                                                   float | None]:
+                          info: StepInfo) -> tuple[np.ndarray, sp.csr_matrix, str, LinearSolver | SymmetricSolver]:
         """The Newton update ``d = -H^{-1} g`` (m, shape ``(3 n,)``, zero on fixed DoFs): the exact
         Hessian when it factorises as positive definite, else the projected one (:meth:`_projections`),
         else (``projection="none"``, indefinite) the general LU.
 
         Returns:
-            ``(d, H, projection, factorization, curvature)``: the update, the upper triangle of the matrix it
-            solved with, that matrix's projection, the solver holding its factorisation, and the exact Hessian's
-            curvature ``d^T H_exact d`` (J) along a projected matrix's update (None where the update is the exact
-            matrix's, or no exact one was assembled; a joint step's in its reduced coordinates).
+            ``(d, H, projection, factorization)``: the update, the upper triangle of the matrix it
+            solved with, that matrix's projection and the solver holding its factorisation.
 
         Raises:
             SimulationDivergedError: the update is not finite.
         """
         dynamic_terms = contact_terms + step.dynamic_terms
-        d, exact = None, None
+        d = None
         factorization = self.linear_solver
         joint = step.compression
         for projection in self._projections():
             ta = time.perf_counter()
             H = self._assemble_hessian(step, x, projection, dynamic_terms)
-            column, corner = None, 0.0
             if joint is not None:  # the base tied to the compression: the kinematic step's matrix and its border
                 H, column, corner = joint.border(H)
                 joint.last_border = (column, corner)
@@ -798,8 +791,6 @@ class NewtonSolver:
             info.time_linear_solve += time.perf_counter() - tl
             if d is not None:
                 break
-            if projection == "none":  # kept for the curvature along the projected update (the assembler reuses H's
-                exact = (H if joint is not None else H.copy(), column, corner)  # arrays; the border's are new)
         if d is None:  # projection="none" and not positive definite: the general LU
             tl = time.perf_counter()
             info.factorizations += 1
@@ -811,11 +802,7 @@ class NewtonSolver:
         d[~step.free] = 0.0
         if not np.all(np.isfinite(d)):
             raise self._diverged(step, f"linear solve produced NaN at iteration {it}")
-        curvature = None
-        if exact is not None and projection != "none":
-            curvature = (upper_quadratic_form(exact[0], d) if joint is None
-                         else joint.curvature(exact[0], exact[1], exact[2], d))
-        return d, H, projection, factorization, curvature
+        return d, H, projection, factorization
 
     def _energy(self, step: StepTerms, x: np.ndarray, contact_terms: list, x_search: np.ndarray | None) -> float:
         """The incremental potential at ``x`` (J): the loop terms' energy, kept for the same array
@@ -859,43 +846,6 @@ class NewtonSolver:
             alpha *= 0.5
             info.backtracks += 1
         return None, cfg.max_backtracks
-
-    def _expansion(self, step: StepTerms, x: np.ndarray, x_full: np.ndarray, d3: np.ndarray, e0: float, slope: float,
-                   curvature: float, contact_terms: list, x_search: np.ndarray | None, info: StepInfo) -> np.ndarray:
-        """The iterate after a projected matrix's full Newton step ``x_full = x + d``: ``x + a d`` with ``a`` the
-        largest of 2, 4, ... (``SolverConfig.max_expansions`` doublings at most) reached through trial points that
-        each lower the energy below the one before and satisfy the Armijo condition ``E(x + a d) <= E(x) + c a g.d``,
-        while the exact Hessian's quadratic model along ``d``, ``E(x) + a g.d + a^2 k / 2`` (``k = d^T H_exact d``,
-        ``curvature``), has its minimum at ``a`` or beyond (``k <= 0``: none, the energy concave along ``d``) and
-        ``a`` moves no vertex more than ``max_displacement``; ``x_full`` where the first doubling fails.
-
-        Projection adds curvature where the exact Hessian has negative curvature: near a saddle of the incremental
-        potential (a sheet at its buckling load) the projected Newton update moves along the unstable mode by
-        ``|lambda| / (mu + |lambda|)`` of the way a unit step needs (``lambda < 0`` the exact curvature along it,
-        ``mu`` the projected matrix's), and the iterates leave the saddle by that factor an iteration: nominal_s101
-        from +30 % (bending, gel modulus, friction x1.3), step 189: the card's lowest exact eigenvalue -0.72 N/m, the
-        update grew 8 % an iteration (a projected curvature of ~9 N/m along the mode) and the step's 60 Newton
-        iterations ran out before the exact Hessian turned positive definite. The expansion phase of a line search
-        (Nocedal & Wright, Numerical Optimization, 2nd ed., 2006, Alg. 3.5: the trial step increased while the
-        energy decreases) goes the rest of the way along the update in energy evaluations; an update along which
-        the projection changed nothing (``a^* = -g.d / k = 1``) is not extended.
-        """
-        cfg = self.config
-        reach = step.max_displacement / max(largest_move(d3.reshape(-1)), 1e-300)
-        best, e_best, alpha = x_full, None, 1.0
-        for _ in range(cfg.max_expansions):
-            alpha *= 2.0
-            if alpha > reach or (curvature > 0.0 and -slope / curvature < alpha):
-                break
-            if e_best is None:
-                e_best = self._energy(step, x_full, contact_terms, x_search)
-            trial = x + alpha * d3
-            energy = self._energy(step, trial, contact_terms, x_search)
-            if not (energy < e_best and energy <= e0 + cfg.armijo_c * alpha * slope):
-                break
-            best, e_best = trial, energy
-            info.expansions += 1
-        return best
 
     def _check_asleep_unreached(self, contact_terms: list, x: np.ndarray) -> None:
         """Raise :class:`Woken` when a contact candidate pair of ``contact_terms`` joins a sleeping body

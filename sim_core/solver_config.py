@@ -37,16 +37,6 @@ class SolverConfig:
         max_iterations: Newton iterations per step before failing.
         armijo_c: sufficient-decrease constant.
         max_backtracks: line-search halvings before failing.
-        max_expansions: doublings of an iteration's step past its full length at most (0: none), tried only
-            where the Newton matrix was projected (the exact Hessian indefinite: ``exact_hessian_first``) and
-            the exact Hessian's curvature along the update says that the energy's minimum along it lies at
-            least twice as far (:meth:`NewtonSolver._expansion`: near a saddle, as a sheet's buckling, the
-            projection's added curvature holds the update to a fraction of the way out, and the iterate
-            creeps away from the saddle by a few per cent an iteration). Each doubling costs one energy
-            evaluation and is kept only where it lowers the energy (Armijo); ``max_displacement`` bounds it.
-            An iteration whose exact Newton matrix was used is not extended (a step without projected
-            iterations is the same bit for bit). A lockstep batch (``lockstep``) ignores it: its copies' line
-            search only backtracks.
         max_displacement: cap on any vertex's move per iteration, m (None: 0.5 * contact eps + 2 mm).
         projection: PSD projection of element Hessians ("clamp", "abs", "none").
         exact_hessian_first: each iteration, first factorise the exact (unprojected) Hessian and
@@ -193,7 +183,6 @@ class SolverConfig:
     stationary_slope_rtol: float = 1e-12
     armijo_c: float = 1e-4
     max_backtracks: int = 40
-    max_expansions: int = 16
     max_displacement: float | None = None
     projection: str = "clamp"
     exact_hessian_first: bool = True
@@ -219,8 +208,6 @@ class SolverConfig:
                               f"not 'numpy'")
         if self.tol_velocity <= 0 or self.max_iterations < 1:
             raise ConfigError("solver tol_velocity must be > 0 and max_iterations >= 1")
-        if self.max_expansions < 0:
-            raise ConfigError(f"solver max_expansions must be >= 0, got {self.max_expansions}")
         if self.stale_side_backtracks < 1:
             raise ConfigError(f"solver stale_side_backtracks must be >= 1, got {self.stale_side_backtracks}")
         if self.projection not in ("clamp", "abs", "none"):

@@ -103,8 +103,6 @@ class StepInfo:
         limited_effectors: effectors whose command was rate-limited.
         time_assembly, time_linear_solve, time_total: s.
         projected_iterations: iterations whose Newton matrix had PSD-projected element blocks.
-        expansions: doublings of a projected iteration's step past its full length that lowered the energy
-            (``SolverConfig.max_expansions``).
         released_sides: contact pairs whose side was released after a failed or very short line search
             (:meth:`ContactSet.release_stale_sides`).
         factorizations: Newton matrices factorised (a not positive definite exact Hessian and its
@@ -143,7 +141,6 @@ class StepInfo:
     time_linear_solve: float = 0.0
     time_total: float = 0.0
     projected_iterations: int = 0
-    expansions: int = 0
     released_sides: int = 0
     factorizations: int = 0
     simplified_stops: int = 0
@@ -182,8 +179,8 @@ class StepInfo:
 
 
 SUMMED_COUNTS = ("iterations", "backtracks", "time_assembly", "time_linear_solve", "projected_iterations",
-                  "expansions", "released_sides", "factorizations", "simplified_stops", "relaxed_accepts",
-                  "stalled_accepts", "line_search_failures")
+                  "released_sides", "factorizations", "simplified_stops", "relaxed_accepts", "stalled_accepts",
+                  "line_search_failures")
 """The :class:`StepInfo` fields summed over the substeps of a step."""
 
 

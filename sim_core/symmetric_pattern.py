@@ -70,15 +70,3 @@ def both_triangles(indptr: np.ndarray, indices: np.ndarray, n: int) -> tuple[np.
     source[from_upper] = upper.data
     source[from_lower] = lower.data[strict]
     return full_indptr, full_indices, source
-
-
-def upper_quadratic_form(upper: sp.csr_matrix, v: np.ndarray) -> float:
-    """``v^T A v`` of the symmetric matrix ``A = U + U^T - diag(U)`` held as its upper triangle ``U`` (with the
-    diagonal), without forming ``A``: ``2 v . (U v) - sum_i U_ii v_i^2``.
-
-    Args:
-        upper: ``U``, CSR ``(n, n)`` (entries stored twice count twice, as in ``A``).
-        v: ``(n,)``.
-    """
-    v = np.asarray(v, dtype=float).reshape(-1)
-    return float(2.0 * (v @ (upper @ v)) - upper.diagonal() @ (v * v))
