@@ -19,7 +19,7 @@ SCRIPTS = ("bench_band_factor", "bench_cg_precision", "bench_copy_bands", "bench
            "roofline", "count_single_syncs",
            "iterations_lockstep", "parts_lockstep", "pipeline_lockstep", "profile_lockstep", "profile_single",
            "single_rounds", "synthetic_diagnose", "time_batched_gradients", "time_candidate_lists", "time_generation",
-           "time_kernel_prep",
+           "time_kernel_prep", "time_envelope_phases",
            "node_latency_trace", "flood_sim_node",
            "sysid_coverage")
 """Scripts run as ``python benchmarks/NAME.py``."""
