@@ -391,5 +391,5 @@ class StableNeoHookean:
             raise KeyError(f"StableNeoHookean has no parameter {name!r}; known: {self.parameter_names}")
         x = np.asarray(x, dtype=float)
         dmu, dlam = _snh_lame_derivatives(self.youngs_modulus, self.poisson_ratio, name)
-        P_mu, P_lam = self._pk1_parts(self.deformation_gradient(x))
+        P_mu, P_lam = self._pk1_parts(self._deformation(x))  # F and its invariants kept: one per x for all parameters
         return self._forces_from_pk1(x, dmu * P_mu + dlam * P_lam)
