@@ -515,8 +515,9 @@ class StepLinearization:
             touching = kept.touching(p, support) if static else None
             if touching is not None and touching.size == 0:
                 continue
-            if touching is not None and hasattr(p, "restricted"):  # the touching elements' blocks alone
-                hb = p.restricted(touching).hessian(self.x, "none")
+            restricted = getattr(p, "restricted", None)
+            if touching is not None and restricted is not None:  # the touching elements' blocks alone
+                hb = restricted(touching).hessian(self.x, "none")
                 v, blocks = hb.vertices, hb.blocks
             else:
                 hb = p.hessian(self.x, "none")

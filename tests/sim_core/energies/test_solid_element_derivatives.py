@@ -86,3 +86,12 @@ def test_a_law_restricted_to_some_tets_gives_their_blocks_bit_for_bit(element) -
     assert np.allclose(part.gradient(x), alone.gradient(x), rtol=0, atol=1e-12 * np.abs(alone.gradient(x)).max())
     assert part.energy(x) == pytest.approx(alone.energy(x), rel=1e-12)
     assert np.array_equal(pot.hessian(x, "none").blocks, full.blocks)  # the whole law unchanged after it
+
+
+def test_the_taichi_twins_are_not_restricted() -> None:
+    """A Taichi twin's kernels read the whole mesh's device arrays: a copy with some tets' host arrays would pair them
+    wrongly, so the twins offer no ``restricted`` (the support product then builds their blocks whole)."""
+    from sim_core.energies.green_strain.kernel import TiGreenStrainSolid
+    from sim_core.energies.neohookean.kernel import TiStableNeoHookean
+
+    assert TiStableNeoHookean.restricted is None and TiGreenStrainSolid.restricted is None
