@@ -259,7 +259,7 @@ class SupportTerms:
     """Evaluations over the same vertex array object after which a term's elements are trusted."""
 
     def __init__(self) -> None:
-        # key -> [anchor (held), vertices array (held), evaluations over it, {support bytes: touches}]
+        # key -> [anchor (held), vertices array (held), evaluations over it, {support bytes: touching elements}]
         self._terms: dict[tuple[type, int], list] = {}
 
     @staticmethod
@@ -269,15 +269,22 @@ class SupportTerms:
 
     def untouched(self, p, support: np.ndarray) -> bool:
         """Whether ``p``'s blocks are known to touch no vertex of ``support`` (``(n,)`` bool)."""
+        touching = self.touching(p, support)
+        return touching is not None and touching.size == 0
+
+    def touching(self, p, support: np.ndarray) -> np.ndarray | None:
+        """The elements of ``p`` (rows of its trusted vertex array) whose blocks touch a vertex of ``support``
+        (``(n,)`` bool), ``(j,)`` int in increasing order; None while ``p``'s elements are not trusted."""
         entry = self._terms.get(self._key(p)[0])
         if entry is None or entry[2] < self.CONFIRMING_STEPS:
-            return False
+            return None
         mark = np.packbits(support).tobytes()
-        touches = entry[3].get(mark)
-        if touches is None:
+        touching = entry[3].get(mark)
+        if touching is None:
             vertices = entry[1]
-            touches = entry[3][mark] = bool(len(vertices) and support[vertices].any())
-        return not touches
+            touching = entry[3][mark] = (np.flatnonzero(support[vertices].any(axis=1)) if len(vertices)
+                                         else np.zeros(0, dtype=np.int64))
+        return touching
 
     def note(self, p, vertices: np.ndarray) -> None:
         """``p`` was evaluated and its blocks came over ``vertices`` ``(k, m)``."""
@@ -491,7 +498,10 @@ class StepLinearization:
         friction) whose blocks were found over the same vertex array at two earlier steps, none of them touching
         this support, is not evaluated at all (bit for bit the same product: its blocks added nothing). On a
         press-and-slide the effector's support touches the gel's tets only, so the card's membrane and Kirchhoff
-        bending Hessians (the most costly NumPy Hessians of a step) are not built for a product of zeros."""
+        bending Hessians (the most costly NumPy Hessians of a step) are not built for a product of zeros. Of a
+        static term that touches it and can be restricted to some of its elements (``restricted``: the gel's laws,
+        :meth:`sim_core.energies.neohookean.reference.StableNeoHookean.restricted`), only the touching elements'
+        blocks are built (the same blocks bit for bit; the gel's tets below the effector, not the whole gel)."""
         if self._H is not None:
             out = self.hessian_product(dx)
             out[self.fixed] = 0.0
@@ -502,17 +512,23 @@ class StepLinearization:
             if isinstance(p, ConstantDiagonalHessian):
                 continue
             static = kept is not None and not any(p is q for q in self.contact_terms)
-            if static and kept.untouched(p, support):
+            touching = kept.touching(p, support) if static else None
+            if touching is not None and touching.size == 0:
                 continue
-            hb = p.hessian(self.x, "none")
-            if static:
-                kept.note(p, hb.vertices)
-            touch = support[hb.vertices].any(axis=1) if len(hb.vertices) else np.zeros(0, bool)
-            if not touch.any():
-                continue
-            v = hb.vertices[touch]
+            restricted = getattr(p, "restricted", None)
+            if touching is not None and restricted is not None:  # the touching elements' blocks alone
+                hb = restricted(touching).hessian(self.x, "none")
+                v, blocks = hb.vertices, hb.blocks
+            else:
+                hb = p.hessian(self.x, "none")
+                if static:
+                    kept.note(p, hb.vertices)
+                touch = support[hb.vertices].any(axis=1) if len(hb.vertices) else np.zeros(0, bool)
+                if not touch.any():
+                    continue
+                v, blocks = hb.vertices[touch], hb.blocks[touch]
             k, m = v.shape
-            prod = np.matmul(hb.blocks[touch], dx[v].reshape(k, 3 * m, -1))
+            prod = np.matmul(blocks, dx[v].reshape(k, 3 * m, -1))
             out += _scatter_vertex_rows(self.n, v, prod.reshape(k, m, 3, -1))
         out[self.fixed] = 0.0
         return out

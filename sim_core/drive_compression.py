@@ -44,6 +44,7 @@ b)`` unchanged.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -138,7 +139,7 @@ class CompressionPotential:
         self.tied.reshape(-1, 3)[self.base] = -self.axis
         self.free = np.asarray(free, dtype=bool) & ~self.base_dofs
         self.free.flags.writeable = False
-        self._kept: tuple | None = None  # (indptr, indices, maps) of the last pattern (_maps)
+        self._kept: tuple | None = None  # (indptr, indices, maps, indptr seen, indices seen) of the last pattern (_maps)
         self.last_border: tuple[np.ndarray, float] | None = None  # the last factorised matrix's (the solver's)
         self._solved: tuple | None = None  # (column, solve, A^-1 column) of the last direction()
 
@@ -188,9 +189,18 @@ class CompressionPotential:
         rarely): the entries in a base row or column (``touching``), their rows and columns, which of them are off
         the diagonal; and :meth:`constrained`'s pattern: the entries it keeps (every entry outside the base's rows
         and columns, and the base's diagonal), its ``indptr`` and ``indices`` (read-only: the linear solver then
-        knows the pattern without comparing it) and the slots of the base's diagonal in it."""
+        knows the pattern without comparing it), the slots of the base's diagonal in it and a CSR matrix of that
+        pattern (values zero) whose shallow copies :meth:`constrained` returns.
+
+        The pattern counts as the kept one when ``upper``'s index arrays are the very read-only arrays of the last
+        call (the assembler's matrices of one union pattern share them, :meth:`sim_core.dynamic_slots.UnionPattern.
+        matrix`), else when they are equal to it."""
         kept = self._kept
-        if kept is None or not (np.array_equal(kept[0], upper.indptr) and np.array_equal(kept[1], upper.indices)):
+        indptr_in, indices_in = upper.indptr, upper.indices
+        if kept is not None and kept[3] is indptr_in and kept[4] is indices_in and not (
+                indptr_in.flags.writeable or indices_in.flags.writeable):
+            return kept[2]
+        if kept is None or not (np.array_equal(kept[0], indptr_in) and np.array_equal(kept[1], indices_in)):
             n = upper.shape[0]
             rows = np.repeat(np.arange(n), np.diff(upper.indptr))
             cols = upper.indices
@@ -204,18 +214,28 @@ class CompressionPotential:
             ones = np.flatnonzero(self.base_dofs[rows[keep]])
             for a in (indptr, indices):
                 a.flags.writeable = False
-            kept = self._kept = (upper.indptr.copy(), upper.indices.copy(),
-                                 (touching, r, c, r != c, keep, indptr, indices, ones))
+            template = sp.csr_matrix((np.zeros(keep.size), indices, indptr), shape=upper.shape)
+            template.has_sorted_indices = True  # a subset of upper's sorted rows
+            for a in (template.indptr, template.indices):
+                a.flags.writeable = False
+            kept = (upper.indptr.copy(), upper.indices.copy(),
+                    (touching, r, c, r != c, keep, template.indptr, template.indices, ones, template))
+        self._kept = (*kept[:3], indptr_in, indices_in)
         return kept[2]
 
     def constrained(self, upper: sp.csr_matrix) -> sp.csr_matrix:
         """The kinematic step's constrained matrix from ``upper`` (the upper triangle with the base free): the base's
         rows and columns left out of the pattern, 1 on their diagonal (identity rows, as the assembler makes a fixed
         DoF's; a new matrix)."""
-        _, _, _, _, keep, indptr, indices, ones = self._maps(upper)
+        maps = self._maps(upper)
+        keep, ones, template = maps[4], maps[7], maps[8]
         data = upper.data[keep]
         data[ones] = 1.0
-        return sp.csr_matrix((data, indices, indptr), shape=upper.shape)
+        # a shallow copy of the pattern's matrix with these values: SciPy's constructor would check (and copy) the
+        # index arrays on every call; shared read-only arrays let the linear solver know the pattern without comparing
+        matrix = copy.copy(template)
+        matrix.data = data
+        return matrix
 
     def border(self, upper: sp.csr_matrix) -> tuple[sp.csr_matrix, np.ndarray, float]:
         """The reduced Newton matrix ``S^T H S + K e_b e_b^T`` of ``upper`` (the step's Newton matrix with the base

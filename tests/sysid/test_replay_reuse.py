@@ -21,6 +21,7 @@ import sysid.jacobians as jacobians
 from sim_core.adjoint import SupportTerms
 from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
 from sim_core.energies.membrane.reference import StVKMembrane
+from sim_core.energies.neohookean.reference import StableNeoHookean
 from sysid.evidence import load_evidence
 from sysid.fit import DEFAULT_NUISANCE, FitProblem, SensitivityJacobian, joint_tangent_names, parameter_spec
 from sysid.fit_recording import FitOptions, fit_recording
@@ -126,8 +127,9 @@ def test_sysid_hands_the_calibrations_secant_step_to_the_fit(sticky_bag, tmp_pat
 
 def test_a_drive_steps_support_product_skips_the_terms_away_from_the_drive_bit_for_bit(arm_bag, monkeypatch):
     """The tangents through the drive with :class:`SupportTerms` equal those that evaluate every term's Hessian
-    bit for bit, while the support products evaluate the card's membrane and Kirchhoff bending (no vertex on the pad)
-    only at the steps that confirm their elements (two)."""
+    whole bit for bit, while the support products evaluate the card's membrane and Kirchhoff bending (no vertex on the
+    pad) only at the steps that confirm their elements (two), and the gel's law on the tets under the pad only
+    (``restricted``) from then on."""
     model = _model(arm_bag)
     names = ["gel.youngs_modulus", "friction.gel_sheet"]
     calls = {KirchhoffBending: 0, StVKMembrane: 0}
@@ -139,10 +141,21 @@ def test_a_drive_steps_support_product_skips_the_terms_away_from_the_drive_bit_f
             return _original(self, x, projection)
 
         monkeypatch.setattr(cls, "hessian", counting)
+    restricted = []
+    original_restricted = StableNeoHookean.restricted
+
+    def restricting(self, elements):
+        restricted.append((len(elements), len(self.tets)))
+        return original_restricted(self, elements)
+
+    monkeypatch.setattr(StableNeoHookean, "restricted", restricting)
     _, dX, dF, dQ = drive_sensitivities(model, model.prepare({}), names)
     kept = dict(calls)
-    monkeypatch.setattr(SupportTerms, "untouched", lambda self, p, support: False)
+    assert len(restricted) == model.step_count - SupportTerms.CONFIRMING_STEPS  # the gel's law, once a product
+    assert all(0 < j <= k for j, k in restricted), restricted[:3]  # the tets under the pad (this small gel: each one)
+    monkeypatch.setattr(SupportTerms, "touching", lambda self, p, support: None)  # no term trusted: each one whole
     _, dX_all, dF_all, dQ_all = drive_sensitivities(model, model.prepare({}), names)
+    assert len(restricted) == model.step_count - SupportTerms.CONFIRMING_STEPS
     for cls, n in kept.items():  # the same forward steps; the support products skipped the card's terms
         assert calls[cls] - 2 * n == model.step_count - SupportTerms.CONFIRMING_STEPS, cls
     assert np.array_equal(dX, dX_all) and np.array_equal(dF, dF_all) and np.array_equal(dQ, dQ_all)

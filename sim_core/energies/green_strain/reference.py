@@ -29,6 +29,8 @@ does not grow without bound as ``det F -> 0``); the pressed gel's strains (< 15 
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from sim_core.energies.base import BorrowedWorkspace, HessianBlocks, Projection, project_psd
@@ -84,6 +86,15 @@ class GreenStrainTets(BorrowedWorkspace):
     def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
         """``F`` per tet at ``x`` ``(n, 3)``, shape ``(k, 3, 3)`` (the gel candidates' relaxed states read it)."""
         return self.per_tet.deformation_gradient(x)
+
+    def restricted(self, elements: np.ndarray) -> "GreenStrainTets":
+        """The same law on the tets ``elements`` ``(j,)`` only (:meth:`StableNeoHookean.restricted` of its
+        :attr:`per_tet`, whose arrays this law reads): its Hessian blocks are rows ``elements`` of this one's, bit for
+        bit."""
+        out = copy.copy(self)
+        out.per_tet = self.per_tet.restricted(elements)
+        out.tets, out.tet_rest_volume = out.per_tet.tets, out.per_tet.tet_rest_volume
+        return out
 
     def _strain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(F, E, tr E)`` per tet at ``x`` ``(n, 3)``: shapes ``(k, 3, 3)``, ``(k, 3, 3)``, ``(k,)``."""

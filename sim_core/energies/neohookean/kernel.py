@@ -248,6 +248,9 @@ class TetSolidKernels:
     energy_kernel = staticmethod(evaluate_snh_energy)
     gradient_kernel = staticmethod(evaluate_snh_gradient)
     hessian_kernel = staticmethod(evaluate_snh_hessian)
+    restricted = None
+    """No restriction to some tets (the NumPy class's ``restricted``): a copy would keep the whole mesh's device arrays,
+    so :meth:`sim_core.adjoint.StepLinearization.support_product` builds a Taichi twin's blocks whole."""
 
     def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
         require_backend(type(self).__name__)

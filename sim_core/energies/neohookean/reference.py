@@ -157,6 +157,24 @@ class StableNeoHookean:
             self._dvecF_dx = kept
         return kept[1]
 
+    def restricted(self, elements: np.ndarray) -> "StableNeoHookean":
+        """The same law on the tets ``elements`` only: a shallow copy with those rows of :attr:`tets`, the rest
+        volumes and ``dF/dx`` (and of ``d vec(F)/dx`` where made), and a private workspace (:mod:`sim_core.workspace`).
+        Its energy, gradient and Hessian are this potential's restricted to those tets: its Hessian blocks are rows
+        ``elements`` of this one's, bit for bit (each tet's block is computed from its own rows alone). For a product
+        with a Hessian supported on a few vertices (:meth:`sim_core.adjoint.StepLinearization.support_product`).
+
+        Args:
+            elements: tet indices into :attr:`tets`, ``(j,)`` int.
+        """
+        elements = np.asarray(elements, dtype=np.int64)
+        out = copy.copy(self)
+        out.__dict__.pop("workspace", None)  # a private memo: the copy's arrays are its own
+        out.tets, out.tet_rest_volume, out.tet_dFdx = self.tets[elements], self.tet_rest_volume[elements], self.tet_dFdx[elements]
+        kept = self.__dict__.get("_dvecF_dx")
+        out._dvecF_dx = None if kept is None or kept[0] is not self.tet_dFdx else (out.tet_dFdx, kept[1][elements])
+        return out
+
     # ------------------------------------------------------------------ kinematics and densities
     def _edge_matrix(self, x: np.ndarray) -> np.ndarray:
         """``D = [x1 - x0, x2 - x0, x3 - x0]`` (edges as columns), shape ``(k, 3, 3)``."""
@@ -373,5 +391,5 @@ class StableNeoHookean:
             raise KeyError(f"StableNeoHookean has no parameter {name!r}; known: {self.parameter_names}")
         x = np.asarray(x, dtype=float)
         dmu, dlam = _snh_lame_derivatives(self.youngs_modulus, self.poisson_ratio, name)
-        P_mu, P_lam = self._pk1_parts(self.deformation_gradient(x))
+        P_mu, P_lam = self._pk1_parts(self._deformation(x))  # F and its invariants kept: one per x for all parameters
         return self._forces_from_pk1(x, dmu * P_mu + dlam * P_lam)
