@@ -5,9 +5,10 @@ A recording's ``pose_cmd`` channel carries each command's header stamp (when the
 back to back without waiting for it (the sim node in ``fast`` mode on a loaded machine), takes a command a step or
 more after its header stamp, several at once when it falls behind; its path is then a staircase of the commands held
 from their log times, which the commands interpolated between their header stamps miss by a step's travel.
-:func:`commanded_path` reads the commands the way the effector followed them; the score stage's replay
-(:func:`sysid.diagnose.noise.denoise_controls`), the drive's calibration (:func:`sysid.drive_calibration.fit_drive`)
-and the drive's anchor (``ObservationModel.commands``) all take that one reading. :func:`replay_step` is the
+:func:`commanded_path` reads the commands the way the effector followed them (the score stage's replay,
+:func:`sysid.diagnose.noise.denoise_controls`); :func:`anchor_path` takes that reading for the drive's calibration
+(:func:`sysid.drive_calibration.fit_drive`) and anchor (``ObservationModel.commands``) where the recording holds the
+robot's timing (commands logged after their header stamps). :func:`replay_step` is the
 simulation step at which a replay follows such a path: a replay steps the effector linearly from one step end to the
 next, so a held path that jumps inside a replay step is replayed at the robot's own step.
 """
@@ -37,7 +38,9 @@ def commanded_path(ev: Any, at_ns: np.ndarray | None = None) -> tuple[np.ndarray
     The reading whose tracking error ``pose - command`` at the pose stamps has the smaller energy over the
     positions is taken: on the sim node's own recordings the held one is exact (the error is the pose noise
     alone), whatever the commander's timing; where the log times say nothing of when the robot took a command
-    (a recorder that logs on arrival), the interpolation is kept.
+    (a recorder that logs on arrival), the interpolation is kept. The rule reads a kinematic arm's timing (the
+    score stage's premise); of an arm that lags its command (a compliant drive) the older command always lies
+    closer, whatever the timing: the drive's calibration and anchor read :func:`anchor_path`.
 
     Args:
         ev: ``Evidence`` (or any object with its ``t_ns``, ``pose``, ``pose_cmd``, ``pose_cmd_taken``) with
@@ -63,6 +66,40 @@ def commanded_path(ev: Any, at_ns: np.ndarray | None = None) -> tuple[np.ndarray
     if e_hold < e_lin:
         return (hold if at_ns is None else zero_order_hold(taken[0], taken[1], at - period, period, pose[0])), True
     return (lin if at_ns is None else resample_pose(t_cmd, ev.pose_cmd, at, outside="clamp")), False
+
+
+def anchor_path(ev: Any, at_ns: np.ndarray) -> np.ndarray:
+    """The commanded pose at ``at_ns`` ``(M,)`` ns that an arm's drive is anchored at: the robot's own timing
+    where the recording holds it, else the commands interpolated between their header stamps. ``(M, 7)``.
+
+    Where some command was logged after its header stamp (:func:`logged_at_stamps` False: the robot took it
+    late, as the sim node logs a command a lagging commander's robot takes a step or more after its stamp),
+    the log times say when the robot took each command, and :func:`commanded_path`'s reading is taken (held on
+    such a robot's recordings). Where every command was logged at its own header stamp, they say nothing the
+    stamps do not, and the tracking-error rule cannot choose for a compliant arm, whose pose always lies closer
+    to the older command: the interpolation is kept (a kinematic arm's lag is then at most the commands' one-step
+    lead, which no load follows).
+
+    Args:
+        ev: ``Evidence`` with ``pose`` and ``pose_cmd`` channels.
+        at_ns: stamps, int64 ns.
+    """
+    taken = ev.pose_cmd_taken
+    if taken is None or len(taken[0]) == 0 or logged_at_stamps(taken[0], ev.t_ns["pose_cmd"]):
+        return resample_pose(np.asarray(ev.t_ns["pose_cmd"]), ev.pose_cmd, np.asarray(at_ns, dtype=np.int64),
+                             outside="clamp")
+    return commanded_path(ev, at_ns)[0]
+
+
+def logged_at_stamps(t_log: np.ndarray, t_stamp: np.ndarray) -> bool:
+    """Whether every command was logged at its own header stamp: the log times ``(N,)`` within the stamps' span
+    equal the header stamps ``(M,)`` (ns), one for one (the log times cover the whole recording, the stamps may be
+    a window of it)."""
+    t_log, t_stamp = np.asarray(t_log, dtype=np.int64), np.asarray(t_stamp, dtype=np.int64)
+    if t_stamp.size == 0:
+        return False
+    inside = t_log[(t_log >= t_stamp[0]) & (t_log <= t_stamp[-1])]
+    return inside.shape == t_stamp.shape and bool(np.array_equal(inside, t_stamp))
 
 
 def robot_step_ns(ev: Any) -> int:
