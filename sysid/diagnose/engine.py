@@ -62,8 +62,8 @@ Two corrections of the data model come first. The replay is driven by the measur
 whose noise propagates into every prediction (errors in variables): with ``pose_cmd`` recorded, the
 tracking error is smoothed and added to the command (:func:`sysid.diagnose.noise.denoise_controls`), and
 where the path the robot held jumps inside a replay step the recording is replayed at the robot's own step
-(:func:`sysid.diagnose.noise.replay_model`). The noise levels are raised to the white part of the nominal residual, estimated from its first
-differences (:func:`sysid.diagnose.noise.raise_to_white_residual`).
+(:func:`sysid.diagnose.noise.replay_model`). The noise levels are raised to the white part of the nominal
+residual, estimated from its first differences (:func:`sysid.diagnose.noise.raise_to_white_residual`).
 """
 
 from __future__ import annotations
