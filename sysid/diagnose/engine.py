@@ -60,10 +60,9 @@ on its own replays, so the report does not depend on the number of workers.
 
 Two corrections of the data model come first. The replay is driven by the measured effector pose,
 whose noise propagates into every prediction (errors in variables): with ``pose_cmd`` recorded, the
-tracking error is smoothed and added to the command (:func:`sysid.diagnose.noise.denoise_controls`), and
-where the path the robot held jumps inside a replay step the recording is replayed at the robot's own step
-(:func:`sysid.diagnose.noise.replay_model`). The noise levels are raised to the white part of the nominal
-residual, estimated from its first differences (:func:`sysid.diagnose.noise.raise_to_white_residual`).
+tracking error is smoothed and added to the command (:func:`sysid.diagnose.noise.denoise_controls`; a
+note where the path the robot held jumps inside a replay step, :func:`sysid.diagnose.noise.replay_model`). The
+noise levels are raised to the white part of the nominal residual, estimated from its first differences (:func:`sysid.diagnose.noise.raise_to_white_residual`).
 """
 
 from __future__ import annotations
@@ -151,8 +150,8 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             self.notes.append(note)
 
     def _replay_model(self, evidence):
-        """The ``ObservationModel`` of ``evidence`` at the step its held command path needs, its controls denoised
-        (:func:`sysid.diagnose.noise.replay_model`); the notes go to the report."""
+        """The ``ObservationModel`` of ``evidence``, its controls denoised (:func:`sysid.diagnose.noise.replay_model`);
+        the notes go to the report."""
         s = self.settings
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

@@ -16,20 +16,21 @@ import numpy as np
 
 
 def replay_model(evidence: Any, dt: float, window: int, **options: Any) -> tuple[Any, list[str]]:
-    """The score stage's ``ObservationModel`` of ``evidence``: at the step its commanded path needs, controls denoised.
+    """The score stage's ``ObservationModel`` of ``evidence`` at ``dt``, controls denoised, and notes for the report.
 
-    The replay steps at ``dt`` unless the path the robot held (:func:`sysid.command_path.commanded_path`) jumps
-    inside a replay step of ``dt``: a robot stepping faster than the replay that holds a command and then takes
-    the next ones at once (a commander that falls behind it) moves along a staircase that a replay moving
-    linearly between its step ends misses by up to a robot step's travel (0.1-0.3 mm at the demo's speeds),
-    at the stamps inside the step, and through the step with the robot's speed averaged; the second-effect
-    tests read that as a rate or a delay of the gel. Such a recording is replayed at the robot's own step, the
-    ``pose`` stream's period (:func:`sysid.command_path.replay_step`; more replay steps: 2x at 5 ms for 10 ms).
+    Where the path the robot held (:func:`sysid.command_path.commanded_path`) jumps inside a replay step of ``dt``
+    (:func:`sysid.command_path.held_path_jumps_inside`: a robot stepping faster than the replay that holds a
+    command and then takes the next ones at once, under a commander that falls behind it), a replay moving
+    linearly between its step ends misses that staircase by up to a robot step's travel at the stamps inside the
+    step; a note says how many steps and the step that would follow it (the ``pose`` stream's period,
+    :func:`sysid.command_path.replay_step`). The replay keeps ``dt``: at the robot's step the demo's hidden scene
+    under an emulated lag named the true effect alone, but a DDS recording of it named ``damping`` in place of
+    the true ``gel_viscoelasticity`` (docs/benchmarks_log.md "2026-11-28 (session 60, 49demo2)").
     Then :func:`denoise_controls` with ``window`` (0: the measured pose replayed as recorded).
 
     Args:
         evidence: the recording's ``Evidence``.
-        dt: the asked replay step, s.
+        dt: the replay step, s.
         window: :func:`denoise_controls`'s window in pose samples (0: none).
         **options: ``ObservationModel``'s ``t_max``, ``simulation``, ``arch``.
 
@@ -42,13 +43,14 @@ def replay_model(evidence: Any, dt: float, window: int, **options: Any) -> tuple
     from sysid.command_path import held_path_jumps_inside, replay_step
     from sysid.observation import REPLAY_TOL_VELOCITY, ObservationModel
 
-    step = replay_step(evidence, dt, REPLAY_TOL_VELOCITY)
     notes = []
+    step = replay_step(evidence, dt, REPLAY_TOL_VELOCITY)
     if step != dt:
         jumps = held_path_jumps_inside(evidence, int(round(dt * 1e9)), REPLAY_TOL_VELOCITY)
-        notes.append(f"replayed at the robot's step {step * 1e3:g} ms, not {dt * 1e3:g} ms: the path it held (its "
-                     f"commands from when it took each) jumps inside {jumps} replay steps of {dt * 1e3:g} ms")
-    model = ObservationModel(evidence, dt=step, **options)
+        notes.append(f"the path the robot held (its commands from when it took each) jumps inside {jumps} replay "
+                     f"steps of {dt * 1e3:g} ms, which the replay moves through linearly; --dt {step:g} replays it "
+                     "at the robot's step")
+    model = ObservationModel(evidence, dt=dt, **options)
     if window:
         note = denoise_controls(model, window)
         if note:
