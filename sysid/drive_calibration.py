@@ -44,6 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sysid.command_path import anchor_path
 from sysid.evidence import resample_pose
 
 DRIVE_MIN_EXPLAINED = 0.9
@@ -187,7 +188,7 @@ def fit_drive(model) -> DriveCalibration:
     t = np.asarray(ev.t_ns["wrench"], dtype=np.int64)
     load = -np.asarray(ev.values("wrench"), dtype=float)[:, 2]
     pose = resample_pose(ev.t_ns["pose"], ev.pose, t, outside="clamp")
-    command = resample_pose(ev.t_ns["pose_cmd"], ev.pose_cmd, t, outside="clamp")
+    command = anchor_path(ev, t)
     normal = np.stack([model.sensor_normal(p) for p in pose])
     lag = np.einsum("ij,ij->i", command[:, :3] - pose[:, :3], normal)
     n = int(load.size)

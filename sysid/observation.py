@@ -55,6 +55,7 @@ from sim_core.scenes.task_scene import build_task_scene
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig
 from sim_core.transforms import quat_to_matrix
+from sysid.command_path import anchor_path
 from sysid.evidence import Evidence, resample_pose
 from sysid.replay_drive import ReplayDrive
 from sysid.replay_trace import PREDICTABLE_CHANNELS, Resume, SimTrace
@@ -173,7 +174,9 @@ class ObservationModel:
         drive_stiffness: stiffness (N/m) of the effector's drive along the sensor normal
             (:meth:`set_drive_stiffness`); ``inf`` (default): the recorded pose driven kinematically.
         drive_damping: the drive's damper on the effector's velocity along the normal, N s/m (0 by default).
-        commands: ``(K + 1, 7)`` recorded commanded poses (``pose_cmd``) at the step times, or None.
+        commands: ``(K + 1, 7)`` recorded commanded poses (``pose_cmd``) at the step times, as the robot took
+            them where the recording holds its timing (:func:`sysid.command_path.anchor_path`: held from their log
+            times, else interpolated between their header stamps), or None.
         warm_start: None, or vertex positions ``(K + 1, n, 3)`` in m of a replay at nearby
             parameters (``SimTrace.positions``): every replay then starts the Newton solve of step
             k from row k (``Control.position_guess``) instead of from step k - 1's solution. Each
@@ -244,8 +247,7 @@ class ObservationModel:
         self.drive_stiffness = math.inf
         self.drive_damping = 0.0
         commanded = not self.task and "pose_cmd" in evidence.channels_present
-        self.commands = (resample_pose(evidence.t_ns["pose_cmd"], evidence.pose_cmd, self.step_times_ns,
-                                       outside="clamp") if commanded else None)
+        self.commands = anchor_path(evidence, self.step_times_ns) if commanded else None
 
     # ------------------------------------------------------------------------------ set-up
     def _pick_sensor(self) -> tuple[str, str]:

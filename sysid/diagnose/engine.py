@@ -60,9 +60,9 @@ on its own replays, so the report does not depend on the number of workers.
 
 Two corrections of the data model come first. The replay is driven by the measured effector pose,
 whose noise propagates into every prediction (errors in variables): with ``pose_cmd`` recorded, the
-tracking error is smoothed and added to the command (:func:`sysid.diagnose.noise.denoise_controls`). The
-noise levels are raised to the white part of the nominal residual, estimated from its first
-differences (:func:`sysid.diagnose.noise.raise_to_white_residual`).
+tracking error is smoothed and added to the command (:func:`sysid.diagnose.noise.denoise_controls`; a
+note where the path the robot held jumps inside a replay step, :func:`sysid.diagnose.noise.replay_model`). The
+noise levels are raised to the white part of the nominal residual, estimated from its first differences (:func:`sysid.diagnose.noise.raise_to_white_residual`).
 """
 
 from __future__ import annotations
@@ -129,20 +129,15 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
                  project: Sequence[str] | None = None, settings: Settings | None = None,
                  candidate_names: Sequence[str] | None = None) -> None:
         from sysid.evidence import load_evidence
-        from sysid.observation import PREDICTABLE_CHANNELS, ObservationModel
+        from sysid.observation import PREDICTABLE_CHANNELS
 
         self.bag = str(bag)
         self.settings = settings or Settings()
         s = self.settings
         self.evidence = load_evidence(bag, include_image="auto", recording_map=s.recording_map, t_start=s.t_start,
                                       t_end=s.t_end)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            self.model = ObservationModel(self.evidence, dt=s.dt, t_max=s.t_max, simulation=s.simulation,
-                                          arch=s.arch)
         self.notes: list[str] = []
-        if s.denoise_window:
-            self._note(noise.denoise_controls(self.model, s.denoise_window))
+        self.model = self._replay_model(self.evidence)
         self.heldout = [str(h) for h in heldout]
         self.params = tuple(params)
         self.project = tuple(project) if project is not None else self.params
@@ -153,6 +148,18 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
     def _note(self, note: str | None) -> None:
         if note:
             self.notes.append(note)
+
+    def _replay_model(self, evidence):
+        """The ``ObservationModel`` of ``evidence``, its controls denoised (:func:`sysid.diagnose.noise.replay_model`);
+        the notes go to the report."""
+        s = self.settings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model, notes = noise.replay_model(evidence, s.dt, s.denoise_window, t_max=s.t_max,
+                                              simulation=s.simulation, arch=s.arch)
+        for n in notes:
+            self._note(n)
+        return model
 
     # ------------------------------------------------------------------------------ steps
     def _nominal(self) -> dict[str, float]:
@@ -511,20 +518,10 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
     # ------------------------------------------------------------------------------ decide
     def _heldout_models(self) -> list:
         from sysid.evidence import load_evidence
-        from sysid.observation import ObservationModel
 
-        out = []
-        for h in self.heldout:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                out.append(ObservationModel(load_evidence(h, include_image="auto", recording_map=self.settings.recording_map,
-                                                          t_start=self.settings.t_start, t_end=self.settings.t_end),
-                                            dt=self.settings.dt,
-                                            t_max=self.settings.t_max, simulation=self.settings.simulation,
-                                            arch=self.settings.arch))
-                if self.settings.denoise_window:
-                    self._note(noise.denoise_controls(out[-1], self.settings.denoise_window))
-        return out
+        return [self._replay_model(load_evidence(h, include_image="auto", recording_map=self.settings.recording_map,
+                                                 t_start=self.settings.t_start, t_end=self.settings.t_end))
+                for h in self.heldout]
 
     def _folds(self, ctx, train, theta, refits) -> list[heldout.HeldoutFold]:
         """The held-out data: the held-out recordings (each replayed at the nominal and at every

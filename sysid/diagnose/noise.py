@@ -15,6 +15,49 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 
+def replay_model(evidence: Any, dt: float, window: int, **options: Any) -> tuple[Any, list[str]]:
+    """The score stage's ``ObservationModel`` of ``evidence`` at ``dt``, controls denoised, and notes for the report.
+
+    Where the path the robot held (:func:`sysid.command_path.commanded_path`) jumps inside a replay step of ``dt``
+    (:func:`sysid.command_path.held_path_jumps_inside`: a robot stepping faster than the replay that holds a
+    command and then takes the next ones at once, under a commander that falls behind it), a replay moving
+    linearly between its step ends misses that staircase by up to a robot step's travel at the stamps inside the
+    step; a note says how many steps and the step that would follow it (the ``pose`` stream's period,
+    :func:`sysid.command_path.replay_step`). The replay keeps ``dt``: at the robot's step the demo's hidden scene
+    under an emulated lag named the true effect alone, but a DDS recording of it named ``damping`` in place of
+    the true ``gel_viscoelasticity`` (docs/benchmarks_log.md "2026-11-28 (session 60, 49demo2)").
+    Then :func:`denoise_controls` with ``window`` (0: the measured pose replayed as recorded).
+
+    Args:
+        evidence: the recording's ``Evidence``.
+        dt: the replay step, s.
+        window: :func:`denoise_controls`'s window in pose samples (0: none).
+        **options: ``ObservationModel``'s ``t_max``, ``simulation``, ``arch``.
+
+    Returns:
+        ``(model, notes for the report)``.
+
+    Raises:
+        CalibrationError: as ``ObservationModel``.
+    """
+    from sysid.command_path import held_path_jumps_inside, replay_step
+    from sysid.observation import REPLAY_TOL_VELOCITY, ObservationModel
+
+    notes = []
+    step = replay_step(evidence, dt, REPLAY_TOL_VELOCITY)
+    if step != dt:
+        jumps = held_path_jumps_inside(evidence, int(round(dt * 1e9)), REPLAY_TOL_VELOCITY)
+        notes.append(f"the path the robot held (its commands from when it took each) jumps inside {jumps} replay "
+                     f"steps of {dt * 1e3:g} ms, which the replay moves through linearly; --dt {step:g} replays it "
+                     "at the robot's step")
+    model = ObservationModel(evidence, dt=dt, **options)
+    if window:
+        note = denoise_controls(model, window)
+        if note:
+            notes.append(note)
+    return model, notes
+
+
 def denoise_controls(model: Any, window: int) -> str | None:
     """Replace the replayed effector positions by a denoised estimate (errors in variables).
 
@@ -26,7 +69,7 @@ def denoise_controls(model: Any, window: int) -> str | None:
     Golay 1964) and added back to the exact command, so the command's corners stay sharp; a tracking
     error that is white (:func:`tracking_error_is_white`: measurement noise only) is not added back.
 
-    The command path is the one the effector followed (:func:`commanded_path`): the commands held as
+    The command path is the one the effector followed (:func:`sysid.command_path.commanded_path`): the commands held as
     the robot held them, from the time it took each (zero-order hold on the log times,
     ``Evidence.pose_cmd_taken``), or the commands interpolated linearly between their header stamps,
     whichever leaves the smaller tracking error. A robot that steps faster than its commander takes a
@@ -46,6 +89,7 @@ def denoise_controls(model: Any, window: int) -> str | None:
     """
     from scipy.signal import savgol_filter
 
+    from sysid.command_path import commanded_path
     from sysid.evidence import resample_pose
 
     ev = model.evidence
@@ -67,45 +111,6 @@ def denoise_controls(model: Any, window: int) -> str | None:
     if white:
         return f"replayed effector positions = pose_cmd, {path} (the tracking error is white: measurement noise only)"
     return f"replayed effector positions denoised (pose_cmd, {path}, + Savitzky-Golay({w}, 2) of the tracking error)"
-
-
-def commanded_path(ev: Any) -> tuple[np.ndarray, bool]:
-    """The commanded pose at each ``pose`` stamp, as the effector was commanded along its path.
-
-    Two readings of the recorded commands:
-
-    - held: a robot that takes a command between two steps (logged then: ``Evidence.pose_cmd_taken``)
-      reaches it at the end of the next step, so the pose stamped ``t`` follows the last command taken
-      at or before ``t - T/2`` (``T`` the pose stream's median period; the stamps rounded to the ns),
-      and its recorded start pose before the first command (zero-order hold, as a task scene's replay
-      holds its commands, ``sysid.observation``);
-    - interpolated: the commands' header stamps, linearly (a robot that tracks a continuous reference).
-
-    The reading whose tracking error ``pose - command`` has the smaller energy over the positions is
-    taken: on the sim node's own recordings the held one is exact (the error is the pose noise alone),
-    whatever the commander's timing; where the log times say nothing of when the robot took a command
-    (a recorder that logs on arrival), the interpolation is kept.
-
-    Args:
-        ev: ``Evidence`` with ``pose`` and ``pose_cmd`` channels.
-
-    Returns:
-        ``(commanded poses (N, 7) at the pose stamps, True when held)``.
-    """
-    from sysid.evidence import resample_pose
-    from sysid.replay_time import held as zero_order_hold
-
-    t_pose = np.asarray(ev.t_ns["pose"], dtype=np.int64)
-    pose = np.asarray(ev.pose, dtype=float)
-    lin = resample_pose(np.asarray(ev.t_ns["pose_cmd"]), ev.pose_cmd, t_pose, outside="clamp")
-    taken = ev.pose_cmd_taken
-    if taken is None or t_pose.shape[0] < 2 or len(taken[0]) == 0:
-        return lin, False
-    period = int(np.median(np.diff(t_pose)))
-    hold = zero_order_hold(taken[0], taken[1], t_pose - period, period, pose[0])
-    e_lin = float(np.sum((pose[:, :3] - lin[:, :3]) ** 2))
-    e_hold = float(np.sum((pose[:, :3] - hold[:, :3]) ** 2))
-    return (hold, True) if e_hold < e_lin else (lin, False)
 
 
 WHITE_Z = 3.09

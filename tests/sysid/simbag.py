@@ -140,15 +140,16 @@ def lagging_commander(lags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return taken, in_force
 
 
-def lagged_streams(scene: dict, params: dict, targets: np.ndarray, lags: np.ndarray) -> dict[str, np.ndarray]:
-    """:func:`simulate_streams` of a kinematic arm driven as :func:`lagging_commander` says: step ``j`` goes
-    to the target of the command in force (the initial pose before the first), and ``pose_cmd`` is the sim
-    node's command log: command ``j`` (``targets[j]``) stamped ``t_j`` and logged when taken
-    (``"pose_cmd_log_ns"``), several at one log time."""
+def lagged_streams(scene: dict, params: dict, targets: np.ndarray, lags: np.ndarray,
+                   drive: tuple[float, float] | None = None) -> dict[str, np.ndarray]:
+    """:func:`simulate_streams` of an arm (kinematic, or ``drive``: an impedance-controlled one) driven as
+    :func:`lagging_commander` says: step ``j`` goes to the target of the command in force (the initial pose before
+    the first), and ``pose_cmd`` is the sim node's command log: command ``j`` (``targets[j]``) stamped ``t_j`` and
+    logged when taken (``"pose_cmd_log_ns"``), several at one log time."""
     taken, in_force = lagging_commander(lags)
     start = np.asarray(scene["effectors"]["ee"]["initial_pose"], dtype=float)
     held = np.array([targets[j] if j >= 0 else start for j in in_force])
-    out = simulate_streams(scene, params, held)
+    out = simulate_streams(scene, params, held, drive=drive)
     dt_ns = int(round(scene["dt"] * 1e9))
     cut = taken < len(targets)  # commands taken after the last step are not in the recording
     out["pose_cmd_t_ns"] = np.arange(len(targets), dtype=np.int64)[cut] * dt_ns

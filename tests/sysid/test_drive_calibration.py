@@ -20,6 +20,8 @@ from sysid.drive_calibration import DRIVE_MIN_DELTA_BIC, fit_drive
 from sysid.evidence import load_evidence
 from sysid.observation import ObservationModel
 from tests.sysid.conftest import SCENE, reference_bag, synthetic_streams, write_synthetic
+from tests.sysid.simbag import (NOISE, PRESS_SLIDE, TRUE_PARAMS, add_noise, lagged_streams, lagging_commander,
+                                scene_with, targets_from_segments, write_bag)
 
 REFERENCE_IMPEDANCE = 3000.0  # N/m, the reference world's arm (shared/data/reference_bags/README.md)
 
@@ -96,6 +98,36 @@ def test_the_data_choose_the_drive_by_delta_bic(tmp_path):
     assert not stiff.compliant and stiff.replay_stiffness == math.inf
     assert stiff.delta_bic < DRIVE_MIN_DELTA_BIC and "delta-BIC" in stiff.why
     assert stiff.summary()["decision"] == "kinematic"
+
+
+LAGGED_ARM = (2000.0, 5.0)
+"""An impedance-controlled arm (k_s N/m, c N s/m along the sensor normal), as tests/sysid/test_sysid_drive.py's."""
+
+LAGGED_ARM_SEGMENTS = (((0.0, 0.0, -0.0025), 8), *PRESS_SLIDE[1:], ((0.0, 0.0, 0.0), 4), ((0.0, 0.0, 0.0025), 8))
+"""The card pressed 2.5 mm down through the arm (about 3 N on the gel), slid, held and released: 45 steps of 10 ms."""
+
+
+def test_under_a_lagging_commander_the_drive_is_read_from_the_commands_the_robot_took(tmp_path):
+    """Known answer: the card pressed and slid by :data:`LAGGED_ARM` whose commands come 0, 1 or 2 steps late
+    (p 0.6 / 0.3 / 0.1; the sim node's log: stamped when meant, logged when taken, several at once). The spring is
+    anchored at the command in force, so the lag ``pose - command`` is read about the commands held from when the
+    robot took them: the fit finds the arm's stiffness, the load left at the force sensor's noise, and the replay's
+    anchor is the command in force at every step. (Read between the commands' header stamps the lag runs up to two
+    steps ahead of the arm: k_s 1,840 +- 134 N/m, explaining 0.81 of the load, the arm kept kinematic.)"""
+    scene = scene_with(TRUE_PARAMS)
+    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), LAGGED_ARM_SEGMENTS)
+    lags = np.random.default_rng(1).choice(3, size=len(targets), p=(0.6, 0.3, 0.1))
+    streams = lagged_streams(scene, TRUE_PARAMS, targets, lags, drive=LAGGED_ARM)
+    bag = write_bag(tmp_path / "bag", scene, add_noise(streams, seed=7))
+    model = _model(bag, dt=0.01)
+    fit = fit_drive(model)
+    assert fit.compliant and fit.delta_bic > DRIVE_MIN_DELTA_BIC
+    assert fit.stiffness == pytest.approx(LAGGED_ARM[0], abs=2 * fit.stiffness_sigma, rel=0.03)
+    assert fit.residual_rms < 1.1 * NOISE["force_z"]
+    _, in_force = lagging_commander(lags)
+    start = np.asarray(scene["effectors"]["ee"]["initial_pose"], dtype=float)
+    want = np.array([targets[j] if j >= 0 else start for j in in_force])  # row k + 1: the end of step k
+    assert np.max(np.abs(model.commands[1:, :3] - want[:model.step_count, :3])) < 1e-15
 
 
 def test_a_pose_equal_to_its_command_keeps_the_kinematic_drive(tmp_path):

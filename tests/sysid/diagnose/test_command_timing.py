@@ -4,7 +4,7 @@ A robot that steps back to back (the sim node in ``fast`` mode, the main job's r
 a commander that falls behind it a step or more after the command's header stamp, several at once, on a
 loaded machine (:func:`tests.sysid.simbag.lagging_commander`): its path is a staircase of the commands held
 from when it took each (their log times, ``Evidence.pose_cmd_taken``). The score stage's replay takes that
-path (:func:`sysid.diagnose.noise.commanded_path`); the commands interpolated between their header stamps miss
+path (:func:`sysid.command_path.commanded_path`); the commands interpolated between their header stamps miss
 it by a step's travel (0.5 mm here), a model error that depends on the machine's load and that the second-effect
 tests read as physics (the main job's diagnosis named ``anisotropic_bending`` beside the hidden gel
 viscoelasticity once under load). A recorder that stamps each command with the time its target is reached keeps
@@ -18,6 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from sysid.command_path import commanded_path
 from sysid.diagnose import noise
 from sysid.evidence import load_evidence, resample_pose
 from tests.sysid.simbag import (PRESS_SLIDE, TRUE_PARAMS, add_noise, lagged_streams, lagging_commander, scene_with,
@@ -56,7 +57,7 @@ def test_the_replay_takes_the_path_the_robot_held_not_the_interpolated_commands(
     ev = load_evidence(bag)
     t_taken, cmd_taken = ev.pose_cmd_taken
     assert len(np.unique(t_taken)) == len(t_taken) < len(ev.t_ns["pose_cmd"])  # several taken at one time: the last kept
-    cmd, held = noise.commanded_path(ev)
+    cmd, held = commanded_path(ev)
     assert held
     first = int(np.searchsorted(ev.t_ns["pose"], t_taken[0], side="right"))  # the first pose after a command
     assert np.max(np.abs(cmd[first:, :3] - clean[first:, :3])) < 1e-12  # the effector's path exactly
@@ -88,11 +89,42 @@ def test_commands_logged_when_their_target_is_reached_keep_the_interpolation():
     pose[:, 6] = 1.0
     pose[:, 0] = 0.02 * t * 1e-9  # 20 mm/s
     noisy = pose + np.concatenate([np.random.default_rng(0).normal(0.0, 5e-6, (30, 3)), np.zeros((30, 4))], axis=1)
-    cmd, held = noise.commanded_path(_evidence(t, pose, t, noisy, t))
+    cmd, held = commanded_path(_evidence(t, pose, t, noisy, t))
     assert not held and np.array_equal(cmd, resample_pose(t, pose, t))
     # the sim node's log of the same motion: the command for the step ending at t_k taken at t_{k-1}
-    cmd, held = noise.commanded_path(_evidence(t[:-1], pose[1:], t[:-1], noisy, t))
+    cmd, held = commanded_path(_evidence(t[:-1], pose[1:], t[:-1], noisy, t))
     assert held and np.max(np.abs(cmd[1:, :3] - pose[1:, :3])) < 1e-15
+
+
+def test_a_robot_stepping_faster_than_the_replay_is_noted_with_the_step_that_follows_it(tmp_path):
+    """The demo's robot steps at 5 ms, the diagnosis at 10 ms: a command taken late makes it hold and then jump
+    inside one replay step, which a 10 ms replay moves through linearly. The score stage's report says so and
+    names the robot's step (``--dt 0.005``); the replay keeps its step (at 5 ms a DDS recording of the demo named
+    ``damping`` in place of the true ``gel_viscoelasticity``, docs/benchmarks_log.md "2026-11-28 (session 60,
+    49demo2)") and takes the held path at its step ends; with the commander on time there is no note."""
+    from sysid.diagnose.noise import replay_model
+    from sysid.diagnose.settings import Settings
+
+    scene = {**scene_with(TRUE_PARAMS), "dt": 0.005}
+    start = np.asarray(scene["effectors"]["ee"]["initial_pose"], dtype=float)
+    targets = targets_from_segments(start, SLOW_PRESS_SLIDE)
+    step_ns = 5_000_000
+    for name, lags, noted in (("late", np.random.default_rng(1).choice(3, size=len(targets), p=LAG_PROBABILITIES),
+                               True), ("on_time", np.zeros(len(targets), dtype=int), False)):
+        taken, in_force = lagging_commander(lags)
+        pose = np.array([start] + [targets[j] if j >= 0 else start for j in in_force])
+        n = pose.shape[0]
+        cut = taken < len(targets)
+        streams = {"t_ns": np.arange(n, dtype=np.int64) * step_ns, "pose": pose,
+                   "wrench": np.random.default_rng(2).normal(0.0, 0.1, (n, 6)),
+                   "pose_cmd": targets[cut], "pose_cmd_t_ns": np.arange(len(targets), dtype=np.int64)[cut] * step_ns,
+                   "pose_cmd_log_ns": taken[cut] * step_ns}
+        bag = write_bag(tmp_path / name, scene, streams, skip=("markers", "sheet_points"))
+        model, notes = replay_model(load_evidence(bag), 0.01, Settings().denoise_window)
+        assert model.dt == 0.01, (name, notes)
+        assert any("--dt 0.005 replays it at the robot's step" in note for note in notes) == noted, notes
+        want = resample_pose(streams["t_ns"], pose, model.step_times_ns, outside="clamp")
+        assert np.max(np.abs(model.controls[:, :3] - want[:, :3])) < 1e-12, name
 
 
 def test_a_lagging_commander_alone_is_no_mismatch(lagged, tmp_path):
