@@ -141,11 +141,12 @@ class FitOptions:
             fit.json ``diagnostics.tack`` says what was decided and why. True: the recording decides (no carried
             row: no tack and no replay, the replay backend not started by the decision; carried rows: the tack kept
             by :func:`sysid.tack.tack_margin`); nominal_s109's sheet points at the engine's values whitened RMS 82
-            without it, 8.4 with the layer (docs/benchmarks_log.md, sessions 56-57). False (the default): no tack,
-            a lift's card stays on the table in every replay. Not the default: on nominal_s109 the fit with the tack
-            reports the gel-card friction +19 / +30 / +25 % off the engine's value outside its 2-sigma interval from
-            the scene / +30 / -30 % start (docs/benchmarks_log.md, sessions 57 and 58), an interval a user could not
-            trust.
+            without it, 8.4 with the layer (docs/benchmarks_log.md, sessions 56-57); the default: a press-slide (no
+            carried row, or the margin's null) is replayed exactly as without it, a lift's card is carried. False: no
+            tack, a lift's card stays on the table in every replay (nominal_s109's pixels 3.58). On a lift the
+            gel-card friction then acts only on the bonded patch beside ``k_t`` and carries the layer law's form
+            error (sessions 57-59: +19..+30 % off with a tight interval); the split-sample test over the motion's
+            phases (:mod:`sysid.split_sample`) reports it NOT IDENTIFIED where its value moves between the phases.
         hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely
@@ -215,7 +216,7 @@ class FitOptions:
     robust: str | None = DEFAULT_ROBUST_METHOD
     drive: bool = True
     profile_gains: bool = True
-    tack: bool = False
+    tack: bool = True
     hold_unidentified: bool = True
     first_step: float | None = FIRST_STEP
     profile_replays: int = PROFILE_REPLAYS
