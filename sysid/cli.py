@@ -149,7 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where the recording shows the card carried up by the gel (a lift), replay the gel's tack "
                         "(adhesion bonds of four card weights a pair) released at the peel read from the recording, "
                         "kept where it follows the recorded card better than no tack, with a compliant shear layer "
-                        "whose stiffness is fitted from the carried card where it follows better still (sysid.tack; "
+                        "whose stiffness is fitted from the carried card where it follows better still (sysid.diagnose.tack; "
                         "fit.json diagnostics.tack; the recording decides: no carried row, no tack and no replay). "
                         "Default: on (a press-slide has no carried row and is replayed as without it); --no-tack: "
                         "a lift's card stays on the table. On a lift the gel-card friction then acts only on the "

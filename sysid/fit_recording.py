@@ -43,7 +43,7 @@ from sysid.jacobians import TangentReplay, make_jacobian
 from sysid.observation import ObservationModel, SimTrace, scene_dict_for
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
-from sysid.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
+from sysid.diagnose.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
 from sysid.wrench_check import check_wrench
 
 PROFILE_REPLAYS = 0
@@ -136,11 +136,11 @@ class FitOptions:
             docs/benchmarks_log.md, session 51, 49sysdrive.)
         tack: where the recording shows the card carried by the gel (a lift), make the gel's tack part of the
             nominal model, released at the recorded peel, with its compliant shear layer fitted from the carried card
-            where it follows better (:func:`sysid.tack.nominal_tack`), then its ``k_t`` fitted jointly with the
+            where it follows better (:func:`sysid.diagnose.tack.nominal_tack`), then its ``k_t`` fitted jointly with the
             materials (its tangent column; each channel weighed by its gap at the fit's start);
             fit.json ``diagnostics.tack`` says what was decided and why. True: the recording decides (no carried
             row: no tack and no replay, the replay backend not started by the decision; carried rows: the tack kept
-            by :func:`sysid.tack.tack_margin`); nominal_s109's sheet points at the engine's values whitened RMS 82
+            by :func:`sysid.diagnose.tack.tack_margin`); nominal_s109's sheet points at the engine's values whitened RMS 82
             without it, 8.4 with the layer (docs/benchmarks_log.md, sessions 56-57); the default: a press-slide (no
             carried row, or the margin's null) is replayed exactly as without it, a lift's card is carried. False: no
             tack, a lift's card stays on the table in every replay (nominal_s109's pixels 3.58). On a lift the
@@ -405,7 +405,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         fitted = [*options.params, *(n for n in secant if n not in options.params)]
         nuisance = nuisance_of(model, options)
         if layer_on and SHEAR_STIFFNESS_SETTING not in fitted:  # the layer's k_t fitted with the materials (its
-            fitted.append(SHEAR_STIFFNESS_SETTING)  # tangent column): held or alternated, it kept the start's (sysid.tack)
+            fitted.append(SHEAR_STIFFNESS_SETTING)  # tangent column): held or alternated, it kept the start's (sysid.diagnose.tack)
         start = made.pop() if made else None
         law = None
         if comparing:  # the other law's replay with tangents, its fit's first

@@ -26,7 +26,7 @@ DIFFERENCE_PARAMETERS = tuple(SENSOR_PARAMETERS)
 """Parameters whose Jacobian columns the sensitivity provider takes by forward differences: the
 replay's sensor offset (not a simulator parameter). The friction mollifier width ``contact.eps_v`` has its
 tangent (:meth:`sim_core.energies.friction.reference.LaggedFriction.eps_v_gradient`), the tack's shear layer
-(:data:`sysid.tack.SHEAR_STIFFNESS_SETTING`) its own
+(:data:`sysid.diagnose.tack.SHEAR_STIFFNESS_SETTING`) its own
 (:meth:`sim_core.candidates.adhesion.LaggedAdhesion.parameter_gradient`, with the bonds' lagged normals in the state
 tangents)."""
 

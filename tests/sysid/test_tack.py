@@ -1,4 +1,4 @@
-"""The gel's tack in a lift recording's nominal model (sysid.tack): this simulator's own lift with a concealed tack."""
+"""The gel's tack in a lift recording's nominal model (sysid.diagnose.tack): this simulator's own lift with a concealed tack."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from sysid.diagnose.candidates import ADHESION_PROBE_WEIGHTS, adhesion_weight_sc
 from sysid.diagnose.peel import ADHESION_PARAMETER, RELEASE_TIME_SETTING
 from sysid.evidence import load_evidence
 from sysid.observation import ObservationModel
-from sysid.tack import carried_rows, nominal_tack
+from sysid.diagnose.tack import carried_rows, nominal_tack
 from tests.sysid.simbag import (PRESS_ONLY, TRUE_PARAMS, add_noise, make_recording, scene_with, simulate_streams,
                                 targets_from_segments, write_bag)
 
@@ -60,11 +60,11 @@ def test_a_lift_with_a_concealed_tack_gets_it_in_its_nominal_model(lift_bag):
 
 
 def test_the_tack_margin_keeps_a_real_tack_and_not_a_difference_the_noise_makes(lift_bag):
-    """The information criterion with the null margin (sysid.tack.tack_margin, gel_law's rule): a tack whose replay
+    """The information criterion with the null margin (sysid.diagnose.tack.tack_margin, gel_law's rule): a tack whose replay
     is the no-tack one's, or that one off by a random 0.3 sigma a point, is not kept; a tack whose replay is the
     card's where the no-tack one is off by a steady 0.3 sigma (delta-BIC 263, 4.7 null sd) or 3 sigma
     is."""
-    from sysid.tack import tack_margin
+    from sysid.diagnose.tack import tack_margin
 
     bag, _, _ = lift_bag
     model = ObservationModel(load_evidence(bag), dt=0.01)
@@ -85,7 +85,7 @@ def test_a_press_slide_gets_no_tack(tmp_path):
     layer there, ``thinshell sysid`` stops with an error that names the parameter and why."""
     from sim_core.errors import ConfigError
     from sysid.fit_recording import FitOptions, fit_recording
-    from sysid.tack import SHEAR_STIFFNESS_SETTING
+    from sysid.diagnose.tack import SHEAR_STIFFNESS_SETTING
 
     bag = make_recording(tmp_path / "bag")
     model = ObservationModel(load_evidence(bag), dt=0.01)
@@ -101,7 +101,7 @@ def test_a_press_slide_gets_no_tack(tmp_path):
 
 def test_thinshell_sysid_takes_the_tack_by_default():
     """``thinshell sysid`` lets the recording decide the tack by default (``FitOptions.tack``: its carried rows and
-    the :func:`sysid.tack.tack_margin` rule; a press-slide has no carried row); ``--no-tack`` leaves a lift's card on
+    the :func:`sysid.diagnose.tack.tack_margin` rule; a press-slide has no carried row); ``--no-tack`` leaves a lift's card on
     the table."""
     from sysid.cli import build_parser, fit_options
     from sysid.fit_recording import FitOptions
@@ -122,7 +122,7 @@ in shear grows as the card arches), let go, wait."""
 def lift_fold(tmp_path_factory):
     """This simulator's lift-and-fold with a concealed compliant tack (bonds of 400 card weights, isotropic springs of
     k_t 1 N/m a pair, let go at 0.27 s), its model and the tack's decision at the true materials."""
-    from sysid.tack import LAYER_BOND_WEIGHTS, LAYER_NORMAL_RATIO, NORMAL_RATIO_SETTING, SHEAR_STIFFNESS_SETTING
+    from sysid.diagnose.tack import LAYER_BOND_WEIGHTS, LAYER_NORMAL_RATIO, NORMAL_RATIO_SETTING, SHEAR_STIFFNESS_SETTING
 
     scene = scene_with(TRUE_PARAMS)
     dt = float(scene["dt"])
@@ -144,7 +144,7 @@ def test_a_lift_fold_reads_the_concealed_shear_compliance_of_the_tack_back(lift_
     """The decision keeps the compliant layer, reads k_t back within 25 % (the search's grid is a factor 10, Brent's
     tolerance 10 %) with the truth inside its 2-sigma interval, and the replay follows the card better than the
     normal-only bonds."""
-    from sysid.tack import SHEAR_STIFFNESS_SETTING
+    from sysid.diagnose.tack import SHEAR_STIFFNESS_SETTING
 
     model, decision = lift_fold
     assert decision.on and decision.layer is not None, decision.why
@@ -166,7 +166,7 @@ def test_the_layer_fitted_jointly_with_the_bending_from_starts_off_comes_back(li
     concealed 1 N/m in log, with the truth inside its robust 2-sigma interval (measured: 7 replays, k_t 1.27 +- 0.20,
     bending +3.2 % +- 1.5 %: 2.1 sigma, the small bag's layer search itself reads 0.83 at the truth)."""
     from sysid.fit import fit
-    from sysid.tack import SHEAR_STIFFNESS_SETTING
+    from sysid.diagnose.tack import SHEAR_STIFFNESS_SETTING
 
     model, decision = lift_fold
     bending = "sheet.bending_stiffness"
@@ -214,7 +214,7 @@ def test_on_a_lift_the_gel_card_friction_acts_where_the_tack_holds_the_card(lift
 def test_rows_per_datum_is_the_residual_correlation_time():
     """An AR(1) residual of correlation 0.8 a row carries one datum in (1 + 0.8) / (1 - 0.8) = 9 rows; a white one
     in 1."""
-    from sysid.tack import _rows_per_datum
+    from sysid.diagnose.tack import _rows_per_datum
 
     rng = np.random.default_rng(3)
     e = rng.normal(size=(4000, 30, 3))
