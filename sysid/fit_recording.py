@@ -43,7 +43,8 @@ from sysid.jacobians import TangentReplay, make_jacobian
 from sysid.observation import ObservationModel, SimTrace, scene_dict_for
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
-from sysid.diagnose.tack import SHEAR_STIFFNESS_SETTING, nominal_tack
+from sysid.diagnose.tack import LAYER_RATIO_PRIOR, SHEAR_STIFFNESS_SETTING, nominal_tack
+from sysid.jacobians import LAYER_NORMAL_RATIO_SETTING
 from sysid.wrench_check import check_wrench
 
 PROFILE_REPLAYS = 0
@@ -283,16 +284,19 @@ class FitOutcome:
     scene: Path | None = None
 
 
-def nuisance_of(model: ObservationModel, options: FitOptions) -> dict[str, float]:
+def nuisance_of(model: ObservationModel, options: FitOptions, layer: bool = False) -> dict[str, float]:
     """The nuisance priors of a fit: ``options.nuisance``, or :data:`sysid.fit.DEFAULT_NUISANCE` less the
-    parameters the model's scene does not have (a task scene names its bodies otherwise) and the fitted ones.
+    parameters the model's scene does not have (a task scene names its bodies otherwise) and the fitted ones, and
+    where the model has the tack's compliant layer (``layer``) its normal ratio
+    (:data:`sysid.diagnose.tack.LAYER_RATIO_PRIOR`: the layer's law is not known, and a lift's friction and bending
+    take its form error).
 
     Raises:
         ConfigError: an explicitly named parameter the scene does not have.
     """
     if options.nuisance is not None:
         return {n: float(v) for n, v in options.nuisance if n not in options.params}
-    out = {}
+    out = {LAYER_NORMAL_RATIO_SETTING: LAYER_RATIO_PRIOR} if layer else {}
     for name, prior in DEFAULT_NUISANCE.items():
         if name in options.params:
             continue
@@ -403,7 +407,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         stage = None if sensor is None or not options.fit_eps_v else sensor.secant
         secant = stage.names if stage is not None and stage.accepted else ()
         fitted = [*options.params, *(n for n in secant if n not in options.params)]
-        nuisance = nuisance_of(model, options)
+        nuisance = nuisance_of(model, options, layer_on)
         if layer_on and SHEAR_STIFFNESS_SETTING not in fitted:  # the layer's k_t fitted with the materials (its
             fitted.append(SHEAR_STIFFNESS_SETTING)  # tangent column): held or alternated, it kept the start's (sysid.diagnose.tack)
         start = made.pop() if made else None

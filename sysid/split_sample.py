@@ -169,17 +169,19 @@ def _inverse(B: np.ndarray, scale: float) -> np.ndarray | None:
 
 
 def split_test(names: Sequence[str], J: np.ndarray, r: np.ndarray, times_s: np.ndarray, bin_s: float, lag: int,
-               phases: Sequence[tuple[float, float]]) -> dict[str, SplitTest]:
-    """The split-sample test of every fitted parameter over ``phases`` (module docstring).
+               phases: Sequence[tuple[float, float]] = (),
+               groups: Sequence[tuple[Any, np.ndarray]] = ()) -> dict[str, SplitTest]:
+    """The split-sample test of every fitted parameter over ``phases`` and ``groups`` (module docstring).
 
     Args:
         names: the parameters, ``(p,)`` in the columns' order.
         J: whitened Jacobian at the fit ``(m, p)``, search coordinates; r: whitened residual at the fit ``(m,)``.
         times_s: each residual's time ``(m,)``, s; bin_s: the time bin, s; lag: the lag window, bins (the fit's).
         phases: ``(start_s, end_s)`` in the residual times' origin (:func:`motion_phases`).
+        groups: further ``(label, rows)`` to leave out, ``rows`` bool ``(m,)`` (e.g. a channel's residuals).
 
     Returns:
-        name -> :class:`SplitTest` (every parameter stable where fewer than two phases hold residuals).
+        name -> :class:`SplitTest` (every parameter stable where fewer than two parts hold residuals).
 
     Raises:
         CalibrationError: shapes that do not match, or a singular ``J^T J``.
@@ -195,12 +197,12 @@ def split_test(names: Sequence[str], J: np.ndarray, r: np.ndarray, times_s: np.n
         raise CalibrationError("J^T W J is singular: no split-sample test")
     u_all = -Binv @ (J.T @ r)  # the whole fit's Gauss-Newton point, relative to the fit
     bins = time_bins(times, bin_s)
-    g = bin_scores(J, r, bins)
-    bin_t = np.zeros(g.shape[0])
-    np.maximum.at(bin_t, bins, times)  # a bin's time: its latest residual's (inside the bin)
-    rows = [(times >= a) & (times < b) for a, b in phases]
+    parts = [((float(a), float(b)), (times >= a) & (times < b)) for a, b in phases]
+    parts += [(label, np.asarray(rows, bool)) for label, rows in groups]
     tested, D, V, u_rests, sd_rest = [], [], [], [], []
-    for (a, b), mk in zip(phases, rows):
+    for label, mk in parts:
+        if mk.shape != r.shape:
+            raise CalibrationError(f"split test: group {label!r} has {mk.shape} rows for {r.size} residuals")
         if not mk.any() or mk.all():
             continue
         Br = J[~mk].T @ J[~mk]
@@ -208,13 +210,12 @@ def split_test(names: Sequence[str], J: np.ndarray, r: np.ndarray, times_s: np.n
         if Brinv is None:
             continue
         u_rest = -Brinv @ (J[~mk].T @ r[~mk])  # the rest's Gauss-Newton point, relative to the fit
-        in_k = np.zeros(g.shape[0], bool)
-        in_k[np.unique(bins[mk])] = True
-        h = np.where(in_k[:, None], g @ Binv.T, g @ (Binv - Brinv).T)  # A_t g_t
+        g_in = bin_scores(J * mk[:, None], r, bins)
+        g_out = bin_scores(J * ~mk[:, None], r, bins)
+        h = g_in @ Binv.T + g_out @ (Binv - Brinv).T  # A g per time bin
         var = np.maximum(np.diag(hac_meat(h, lag)), np.diag(Brinv - Binv))
-        g_rest = np.where(in_k[:, None], 0.0, g)
-        rest = np.diag(Brinv @ hac_meat(g_rest, lag) @ Brinv)
-        tested.append((float(a), float(b)))
+        rest = np.diag(Brinv @ hac_meat(g_out, lag) @ Brinv)
+        tested.append(label)
         D.append(u_rest - u_all)
         V.append(var)
         u_rests.append(u_rest)
