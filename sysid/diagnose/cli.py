@@ -56,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replay budget of the calibration's stage for the stick regularisation contact.eps_v "
                         "(default %(default)s: a probe at a third of the scene's value, then one Gauss-Newton step on "
                         "the secant; each more replay is a Broyden-updated step; 0: none)")
-    p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=True,
+    p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=False,
                    help="signature stage: where the recording shows the card carried up by the gel (a lift), the "
                         "gel's tack (bonds released at the recorded peel, its compliant shear layer fitted from the "
                         "carried card) is part of the nominal model before the calibration, as in thinshell sysid "
