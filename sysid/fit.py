@@ -47,7 +47,9 @@ from scipy.stats import qmc
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
 from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovariance, model_residual_times,
                               model_robust_covariance, nuisance_covariance)
-from sysid.identifiability import Interval, judge, lower_cost_note, not_identified_note, profile_intervals
+from sysid.identifiability import (Interval, judge, lower_cost_note, not_identified_note, profile_intervals,
+                                   split_verdict)
+from sysid.split_sample import model_phases, split_test
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              DIFFERENCE_PARAMETERS, SensitivityJacobian, load_sensitivity, make_jacobian,
                              tangent_columns)
@@ -573,7 +575,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         stop_robust_sigma: float | None = None, stop_trial_robust: bool = False,
         nuisance: Mapping[str, float] | None = None, hold_unidentified: bool = False,
         first_step: float | None = None, made: Any = None,
-        prior: Mapping[str, tuple[float, float]] | None = None, profile_replays: int = 0) -> FitResult:
+        prior: Mapping[str, tuple[float, float]] | None = None, profile_replays: int = 0,
+        split: bool = True) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -692,6 +695,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         profile_replays: replays allowed on each side of each parameter's profile (:func:`sysid.identifiability.
             profile_intervals`: the robust interval's ends replayed, widened where the cost is flatter than its
             tangent said); 0: the linearised rule alone (no replay).
+        split: also judge each parameter by the split-sample test over the recording's motion phases
+            (:mod:`sysid.split_sample`, no replay): a parameter whose value moves between the phases by more than the
+            null allows is reported not identified (:func:`sysid.identifiability.split_verdict`). False: not tested.
 
     Returns:
         the :class:`FitResult`.
@@ -934,6 +940,14 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             problem.close()
             model.warm_start, model.sigma_scale = saved
             profile_runs = problem.sim_runs - runs_before
+    if split and J is not None and r_best is not None and robust_cov is not None:
+        try:
+            times, bin_s = model_residual_times(model)
+            tests = split_test(names, J, r_best, times, bin_s, robust_cov.lag_bins, model_phases(model, bin_s))
+        except CalibrationError as err:
+            notes.append(f"split-sample test not computed ({err})")
+        else:
+            intervals = split_verdict(specs, u_best, intervals, tests)
     unidentified = tuple(n for n in names if not intervals[n].identified)
     notes.extend(not_identified_note(intervals[n]) for n in unidentified)
     notes.extend(w for w in (lower_cost_note(intervals[n]) for n in names) if w)

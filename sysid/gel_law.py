@@ -634,7 +634,7 @@ def auto_not_applicable(tactile: bool, tack: bool, scene_law: str | None, laws: 
     """Why ``--gel-element auto`` keeps the scene's gel law for a recording, or None where it compares ``laws``.
 
     The comparison needs a tactile sensor's replays (its channels carry the laws' difference), is made without the
-    tack's layer (whose stiffness :mod:`sysid.tack` fits with the scene's law) and takes the scene's law as its
+    tack's layer (whose stiffness :mod:`sysid.diagnose.tack` fits with the scene's law) and takes the scene's law as its
     reference, so a scene that names a law outside ``laws`` keeps it. It is made on the gel mesh the scene states
     (:func:`gel_mesh`) or a finer one: the laws part at second order in the strain, less than a coarser mesh's own
     error. On the quick demo's recording (this simulator's default law, a concealed gel viscoelasticity, the modulus
@@ -645,7 +645,7 @@ def auto_not_applicable(tactile: bool, tack: bool, scene_law: str | None, laws: 
 
     Args:
         tactile: the recording's scene has a tactile sensor.
-        tack: the recording's nominal model has the gel's tack (:func:`sysid.tack.nominal_tack` kept it).
+        tack: the recording's nominal model has the gel's tack (:func:`sysid.diagnose.tack.nominal_tack` kept it).
         scene_law: the scene's ``simulation.gel_element``, None where it names none.
         laws: the laws compared.
         mesh: the replays' gel mesh ``[NX, NY, NZ]`` (None: the scene's).

@@ -59,7 +59,7 @@ data sheet's.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -110,6 +110,9 @@ class Interval:
         source: ``"linearised"`` (the robust sigma) or ``"profile"`` (replayed profile points).
         points: the replayed profile points (empty for ``linearised``).
         outside_prior: the fitted value lies outside the prior range.
+        split: the split-sample test over the recording's phases (:func:`sysid.split_sample.split_test`,
+            :func:`split_verdict`: ``SplitTest.summary()``; None: not tested). Where it excludes one constant the
+            parameter is not identified.
     """
 
     name: str
@@ -123,12 +126,25 @@ class Interval:
     source: str = "linearised"
     points: tuple[ProfilePoint, ...] = field(default_factory=tuple)
     outside_prior: bool = False
+    split: dict[str, Any] | None = None
+
+    @property
+    def unstable(self) -> bool:
+        """The split-sample test excluded one constant over the recording's phases."""
+        return bool(self.split is not None and not self.split["stable"])
 
     def words(self) -> str:
         """The verdict in words (the report's and the CLI's)."""
         span = f"[{self.lower:.4g}, {self.upper:.4g}]"
         if self.identified:
             return f"identified, {span} ({self.source})"
+        if self.unstable:
+            phases = ", ".join(f"{a:.2f}-{b:.2f} s: {v:.4g} (z {z:+.2f})" for (a, b), v, z in
+                               zip(self.split["phases_s"], self.split["leave_out"], self.split["z"]))
+            return (f"NOT IDENTIFIED as one constant: fitted without each phase of the motion it moves by more than "
+                    f"the null allows (|z| > {self.split['threshold']:.3g}; without {phases}): the model's missing "
+                    f"physics enters it differently in each phase; the data give {span} (every phase's 2-sigma "
+                    f"interval, clipped to the prior range [{self.prior[0]:.4g}, {self.prior[1]:.4g}])")
         sides = [s for s, o in (("below", self.open_below), ("above", self.open_above)) if o]
         text = (f"NOT IDENTIFIED: the cost does not rise beyond the null's spread {' or '.join(sides)} the fit within "
                 f"the prior range [{self.prior[0]:.4g}, {self.prior[1]:.4g}]; the data give {span} ({self.source})")
@@ -140,7 +156,7 @@ class Interval:
         """fit.json's ``fit.parameters.<name>.interval``."""
         return {"lower": self.lower, "upper": self.upper, "prior": list(self.prior), "identified": self.identified,
                 "open_below": self.open_below, "open_above": self.open_above, "source": self.source,
-                "outside_prior": self.outside_prior,
+                "outside_prior": self.outside_prior, "split": self.split,
                 "profile": [{"delta_u": p.delta_u, "value": p.value, "z": p.z, "delta_cost": p.delta_cost}
                             for p in self.points]}
 
@@ -388,6 +404,42 @@ def profile_intervals(residual: Callable[[np.ndarray], np.ndarray | None], specs
         (w_lo, open_lo, p_lo), (w_hi, open_hi, p_hi) = sides
         out[spec.name] = profiled(spec, linear[spec.name].value, float(u_hat[j]), linear[spec.name], w_lo, w_hi,
                                   open_lo, open_hi, [*reversed(p_lo), *p_hi])
+    return out
+
+
+def _value(spec: ParameterSpec, u: float) -> float:
+    """``spec``'s value at ``u`` held within its search bounds (a nearly flat direction's shift would overflow)."""
+    lo, hi = spec.u_bounds
+    return spec.to_value(min(max(float(u), lo), hi))
+
+
+def split_verdict(specs: Sequence[ParameterSpec], u_hat: np.ndarray, intervals: Mapping[str, Interval],
+                  tests: Mapping[str, Any]) -> dict[str, Interval]:
+    """The intervals with the split-sample test's verdict (:mod:`sysid.split_sample`): a parameter whose value moves
+    between the recording's phases by more than the null allows is not identified, its interval widened to hold
+    every phase-left-out estimate's 2-sigma interval (search coordinate), clipped to the prior range; the others keep
+    their interval, the test recorded.
+
+    Args:
+        specs: the fitted parameters' coordinates; u_hat: the fit ``(p,)``, search coordinates.
+        intervals: name -> :class:`Interval` (:func:`judge` or :func:`profile_intervals`).
+        tests: name -> :class:`sysid.split_sample.SplitTest`.
+    """
+    out = dict(intervals)
+    for j, spec in enumerate(specs):
+        test, iv = tests.get(spec.name), intervals[spec.name]
+        if test is None:
+            continue
+        summary = test.summary(float(u_hat[j]), lambda u, spec=spec: _value(spec, u))
+        if test.stable:
+            out[spec.name] = replace(iv, split=summary)
+            continue
+        lows = [float(u_hat[j]) + du - 2.0 * sd for du, sd in zip(test.leave_out_du, test.leave_out_sd)]
+        highs = [float(u_hat[j]) + du + 2.0 * sd for du, sd in zip(test.leave_out_du, test.leave_out_sd)]
+        lo = min([_value(spec, min(lows))] + ([iv.lower] if math.isfinite(iv.lower) else []))
+        hi = max([_value(spec, max(highs))] + ([iv.upper] if math.isfinite(iv.upper) else []))
+        widened = _clipped(spec.name, iv.value, lo, hi, iv.prior, iv.source, iv.points)
+        out[spec.name] = replace(widened, identified=False, split=summary)
     return out
 
 

@@ -22,17 +22,20 @@ from sysid.replay_drive import drive_sensitivities
 
 JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
 
-DIFFERENCE_PARAMETERS = tuple(SENSOR_PARAMETERS)
+LAYER_NORMAL_RATIO_SETTING = "candidate.adhesion.normal_ratio"
+"""The tack layer's normal-to-shear stiffness ratio (:data:`sysid.diagnose.shear_layer.NORMAL_RATIO_SETTING`; named
+here, below the diagnosis): a nuisance of a lift's fit with no tangent of its own."""
+DIFFERENCE_PARAMETERS = (*SENSOR_PARAMETERS, LAYER_NORMAL_RATIO_SETTING)
 """Parameters whose Jacobian columns the sensitivity provider takes by forward differences: the
 replay's sensor offset (not a simulator parameter). The friction mollifier width ``contact.eps_v`` has its
 tangent (:meth:`sim_core.energies.friction.reference.LaggedFriction.eps_v_gradient`), the tack's shear layer
-(:data:`sysid.tack.SHEAR_STIFFNESS_SETTING`) its own
+(:data:`sysid.diagnose.tack.SHEAR_STIFFNESS_SETTING`) its own
 (:meth:`sim_core.candidates.adhesion.LaggedAdhesion.parameter_gradient`, with the bonds' lagged normals in the state
 tangents)."""
 
-DIFFERENCE_STEPS = {"sensor.normal_offset": 0.1}
+DIFFERENCE_STEPS = {"sensor.normal_offset": 0.1, LAYER_NORMAL_RATIO_SETTING: 0.1}
 """Forward-difference step (search coordinates) of each difference parameter, when larger than the
-provider's ``fd_step``: 5 um of sensor offset. A replay's cost is rough at
+provider's ``fd_step``: 5 um of sensor offset, 10 % of the tack layer's normal ratio. A replay's cost is rough at
 the 0.3 % level under small changes of such parameters (the contact set and the lagged friction's
 stick/slip state switch pair by pair), so a 1 % step measures that roughness rather than the slope."""
 

@@ -13,7 +13,7 @@ carried phase's recorded force is (-0.49, +0.03, -0.31) N (3.0-3.8 s) while the 
 -0.99. The card weighs 0.012 N; 0.49 N is the reference's bond springs stretched by the clamped card, recorded with the
 sign of the force on the card (``benchmarks/mujoco_world/README.md``: our own MuJoCo world records either, and its
 ``physical`` wrench agrees with its markers). No physical tack, which pulls the gel toward the card, can follow
-such a channel; a fit that tries spends the materials and the force gain on it (``sysid.tack``).
+such a channel; a fit that tries spends the materials and the force gain on it (``sysid.diagnose.tack``).
 
 :func:`check_wrench` finds the contradicting rows from the recording alone (no replay, no tuning on a recording:
 the thresholds are noise multiples and a duration); ``thinshell sysid`` leaves those rows out of the fit and of the

@@ -63,7 +63,7 @@ a linear tangential spring on the anchored bonds,
 ``t_k = |P_k d_k|`` with the lagged ``P = I - n n^T`` (fixed within the step), so the shear part is exactly
 quadratic in x: gradient ``k_t P d`` and Hessian ``k_t P`` per pair, PSD. The bond breaks at the normal release
 opening or the peel (``adhesion.release_time``), not in shear. ``k_t`` is a parameter of the recording: the fit
-reads it from the carried card (:mod:`sysid.tack`).
+reads it from the carried card (:mod:`sysid.diagnose.tack`).
 
 Normal compliance (``adhesion.normal_ratio`` ``rho``, with the layer): the layer's bonds are linear springs along the
 normal too, stiffness ``k_n = rho k_t`` per pair, in place of the cohesive law,

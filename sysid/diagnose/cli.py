@@ -56,6 +56,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replay budget of the calibration's stage for the stick regularisation contact.eps_v "
                         "(default %(default)s: a probe at a third of the scene's value, then one Gauss-Newton step on "
                         "the secant; each more replay is a Broyden-updated step; 0: none)")
+    p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=False,
+                   help="signature stage: where the recording shows the card carried up by the gel (a lift), the "
+                        "gel's tack (bonds released at the recorded peel, its compliant shear layer fitted from the "
+                        "carried card) is part of the nominal model before the calibration, as in thinshell sysid "
+                        "(sysid.diagnose.tack; the recording decides: no carried row, no tack and no replay). Default: on; "
+                        "--no-tack: a lift's card stays on the table")
     p.add_argument("--drive", action=argparse.BooleanOptionalAction, default=True,
                    help="signature stage: calibrate the arm's impedance along the sensor normal (spring and damper) "
                         "from the recorded command and measured pose (ee/pose_cmd, ee/pose) and the normal load, and "
@@ -192,7 +198,7 @@ def signature_settings(args: argparse.Namespace) -> SignatureSettings:
         calibration_params=tuple(args.params) if args.params else CALIBRATION_PARAMETERS,
         calibration_max_nfev=args.fit_max_nfev, calibration_max_time=args.calibration_time,
         calibration_max_replays=args.calibration_replays, calibration_secant_replays=args.calibration_secant_replays,
-        calibration_drive=args.drive, workers=max(1, args.workers), probe_worker=not args.one_process,
+        calibration_drive=args.drive, workers=max(1, args.workers), probe_worker=not args.one_process, tack=args.tack,
         batched=args.batched, batch_size=args.batch_size,
         simulation=simulation_overrides(args))
 

@@ -1,6 +1,6 @@
 """The gel tack's compliant shear layer fitted from a carried card: ``k_t`` searched on the sheet points up to the peel.
 
-Shared by the lift's nominal model (:mod:`sysid.tack`, ``thinshell sysid --tack``) and the diagnosis' plasticity refit
+Shared by the lift's nominal model (:mod:`sysid.diagnose.tack`, ``thinshell sysid --tack``) and the diagnosis' plasticity refit
 (:func:`sysid.diagnose.plasticity_refit.tack_base`), which both need a card held by the gel in shear, as a real gel's
 adhesive layer holds it: normal-only bonds let the card slide along the gel face, so a lift-and-fold replay stays a
 straight ramp where the recorded card arches and folds. The layer's physics is
@@ -27,7 +27,7 @@ NORMAL_RATIO_SETTING = "candidate.adhesion.normal_ratio"
 """The layer's normal over its shear stiffness (:mod:`sim_core.candidates.adhesion`, normal compliance)."""
 
 LAYER_NORMAL_RATIO = 1.0
-"""The normal ratio of the layer :mod:`sysid.tack` fits (``thinshell sysid --tack``): isotropic springs, ``k_n = k_t`` a
+"""The normal ratio of the layer :mod:`sysid.diagnose.tack` fits (``thinshell sysid --tack``): isotropic springs, ``k_n = k_t`` a
 pair, so ``k_t`` (the fitted parameter) sets both. With
 the cohesive normal law (~1,100 N/m a pair at the layer's strength) the bonded patch stays flat on the gel face and the
 card leaves the pad at the gel's slope; nominal_s109 shows a card that pivots about its clamp as a straight ramp while

@@ -111,6 +111,13 @@ class SignatureSettings:
         probe_worker: make the calibration's secant probe in a second process beside its start replay
             (:class:`sysid.diagnose.probe_worker.ProbeWorker`; the same replays, about one replay less
             wall time on two cores), where it applies (:func:`probe_worker_for`); False: one process.
+        tack: where the recording shows the card carried by the gel (a lift), the gel's tack is part of the nominal
+            model before the calibration (:func:`sysid.diagnose.tack.nominal_tack`, as ``thinshell sysid``: the recording's
+            carried rows and the tack margin's null decide; a press-slide without carried rows makes no replay and
+            keeps the probe's fork), so the signatures are read against a replay that carries the card (without
+            it nominal_s109's pixels are 3.58 after calibration); False (the default): a lift's card stays on the
+            table. Not yet the default: the nine reference recordings' diagnoses with it are not measured (plastic_s102
+            and damped_s104 name ``adhesion`` beside their effect without it, tests/sysid/diagnose/test_end_to_end.py).
     """
 
     dt: float = 0.01
@@ -136,6 +143,7 @@ class SignatureSettings:
     damping_replays: int = 2
     plasticity_max_time: float | None = None
     probe_worker: bool = False
+    tack: bool = False
 
 
 @dataclass
@@ -218,6 +226,12 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
         # the drive first (closed form, as the calibration fits it again), so that a forked probe replays through it
         drive = fit_drive(model)
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
+    if settings.tack and settings.calibrate and model.sensor is not None:
+        from sysid.diagnose.tack import nominal_tack
+
+        tack = nominal_tack(model)  # the recording decides (no carried row: no replay, the probe still forks)
+        if tack.on:
+            notes.append(f"{bag}: the gel's tack is part of the nominal model ({tack.why})")
     worker = probe_worker_for(model, params, settings)
     beside: dict[str, Any] = {}
 

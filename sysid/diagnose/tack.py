@@ -280,6 +280,17 @@ def nominal_tack(model, params: dict[str, float] | None = None, shear_layer: boo
                         layer, ((layer.stiffness, layer.log_sigma),) if on else (), margin)
 
 
+LAYER_RATIO_PRIOR = math.log(3.0)
+"""Prior 1-sigma of the log of the tack layer's normal-to-shear stiffness ratio (:data:`LAYER_NORMAL_RATIO` its
+nominal), a nuisance of every fit with the layer (:func:`sysid.fit_recording.nuisance_of`): a factor 3 a sigma. No
+recording or data sheet gives it: an elastic layer bonded on both faces has ``k_n / k_t = 2 (1 - nu) / (1 - 2 nu)``
+(2 at nu 0, 3.5 at nu 0.3, 13.5 at a silicone's 0.46), the model's isotropic springs 1, and the reference engine's
+point bonds have none. Measured on this simulator's own lift-and-fold with the ratio concealed at 3
+(docs/benchmarks_log.md, session 60, 49lift2): held at 1, the fit puts the layer's form error into the gel-card
+friction (+106 %, 1.65 +- 0.30 robust: the interval misses the truth) and the bending stiffness (-55 %) while following
+every channel at the noise (whitened RMS 0.93-0.98); the nuisance at ln 3 / 2 a sigma widened the friction to
++- 0.38, still missing it (the truth 2 of that prior's sigma away); at ln 3 a sigma the nuisance part doubles."""
+
 TACK_PARAMETERS = 1
 """Parameters the tack adds to the nominal model in its information criterion: the peel time read from the recording
 (the bonds' strength is set from the card's weight, :func:`sysid.diagnose.candidates.adhesion_weight_scale`)."""
