@@ -145,16 +145,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "where the data choose it (delta-BIC over a kinematic arm > 10; the fit's Jacobian stays "
                         "analytic through the drive); kept kinematic, with the reason in fit.json, elsewhere. "
                         "Default: on, as in thinshell diagnose; --no-drive: the recorded pose driven kinematically")
-    p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=True,
+    p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=False,
                    help="where the recording shows the card carried up by the gel (a lift), replay the gel's tack "
                         "(adhesion bonds of four card weights a pair) released at the peel read from the recording, "
                         "kept where it follows the recorded card better than no tack, with a compliant shear layer "
                         "whose stiffness is fitted from the carried card where it follows better still (sysid.diagnose.tack; "
                         "fit.json diagnostics.tack; the recording decides: no carried row, no tack and no replay). "
-                        "Default: on (a press-slide has no carried row and is replayed as without it); --no-tack: "
-                        "a lift's card stays on the table. On a lift the gel-card friction then acts only on the "
-                        "tack's bonded patch and is reported NOT IDENTIFIED where its value moves between the motion's "
-                        "phases (sysid.split_sample)")
+                        "Default: off, a lift's card stays on the table (on nominal_s109 the fit with the tack, the "
+                        "layer's ratio a nuisance and the split-sample test reports the gel-card friction identified "
+                        "and outside its interval: docs/benchmarks_log.md, session 60, 49lift2)")
     p.add_argument("--wrench-check", action=argparse.BooleanOptionalAction, default=True,
                    help="judge the recorded wrench against the gel's own marker shear by 0.1 s window and leave the "
                         "rows where the force opposes it (no force ON the gel does; INTERFACES.md) out of the fit and "

@@ -142,15 +142,13 @@ class FitOptions:
             fit.json ``diagnostics.tack`` says what was decided and why. True: the recording decides (no carried
             row: no tack and no replay, the replay backend not started by the decision; carried rows: the tack kept
             by :func:`sysid.diagnose.tack.tack_margin`); nominal_s109's sheet points at the engine's values whitened RMS 82
-            without it, 8.4 with the layer (docs/benchmarks_log.md, sessions 56-57); the default: a press-slide (no
-            carried row, or the margin's null) is replayed exactly as without it, a lift's card is carried. False: no
-            tack, a lift's card stays on the table in every replay (nominal_s109's pixels 3.58). On a lift the
-            gel-card friction then acts only on the bonded patch beside ``k_t`` and carries the layer law's form
-            error (sessions 57-59: +19..+30 % off with a tight interval): the layer's normal ratio is a nuisance of
-            the fit (:data:`sysid.diagnose.tack.LAYER_RATIO_PRIOR`) and the split-sample test over the motion's phases
-            (:mod:`sysid.split_sample`) reports a value that moves between the phases NOT IDENTIFIED; on
-            nominal_s109 neither reaches the engine's friction (0.8723, [0.755, 0.990] against 0.734:
-            docs/benchmarks_log.md, session 60, 49lift2).
+            without it, 8.4 with the layer (docs/benchmarks_log.md, sessions 56-57). False (the default): no tack,
+            a lift's card stays on the table in every replay (nominal_s109's pixels 3.58). Not the default: on a lift
+            the gel-card friction then acts only on the bonded patch beside ``k_t`` and carries the layer law's form
+            error; with the layer's normal ratio a nuisance of the fit (:data:`sysid.diagnose.tack.LAYER_RATIO_PRIOR`)
+            and the split-sample test over the motion's phases (:mod:`sysid.split_sample`), nominal_s109 still reports
+            the friction identified and outside its interval (0.8723, [0.755, 0.990] against the engine's 0.734;
+            docs/benchmarks_log.md, session 60, 49lift2): an interval a user could not trust.
         hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
             (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
             identified, with its interval, instead of where a trust-region step along a direction the data barely
@@ -220,7 +218,7 @@ class FitOptions:
     robust: str | None = DEFAULT_ROBUST_METHOD
     drive: bool = True
     profile_gains: bool = True
-    tack: bool = True
+    tack: bool = False
     hold_unidentified: bool = True
     first_step: float | None = FIRST_STEP
     profile_replays: int = PROFILE_REPLAYS
