@@ -35,7 +35,7 @@ from sysid.gain_prior import GainPrior
 from sysid.gain_profile import GainProfile
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, STOP_ROBUST_SIGMA, STOP_SIGMA, SYSID_STOP_RMS, STOP_TRIAL_SIGMA, Evaluation,
                        FitResult, fit, joint_nuisance, joint_tangent_names)
-from sysid.identifiability import prior_ranges
+from sysid.identifiability import law_verdict, not_identified_note, prior_ranges
 from sysid.gel_law import (AUTO_LAW, ask_beside, auto_not_applicable, choose_at_start, gel_mesh, model_parameters,
                            other_law)
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
@@ -436,6 +436,12 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     prior = prior_ranges({n: model.parameter_value(n) for n in fitted}, CALIBRATION_BOUNDS)
     result = fit(model, fitted, nuisance=nuisance, made=start, prior=prior, **fit_args)
     fit_replays = [result.sim_runs]
+    if law is not None:  # a law the recording does not part from the other carries its own bias into the values
+        other = next((k for k in law.fitted if k != law.chosen), law.chosen)
+        judged = law_verdict(result.intervals, law.chosen, other, law.decided, law.fitted)
+        notes.extend(not_identified_note(judged[n]) for n in judged
+                     if judged[n] is not result.intervals[n] and result.intervals[n].identified)
+        result.intervals = judged
     result.warnings[:0] = list(notes)
     if wrench is not None and wrench.tripped:
         result.warnings.append(wrench.message(str(bag)))

@@ -113,6 +113,9 @@ class Interval:
         split: the split-sample test over the recording's phases (:func:`sysid.split_sample.split_test`,
             :func:`split_verdict`: ``SplitTest.summary()``; None: not tested). Where it excludes one constant the
             parameter is not identified.
+        law: where the recording did not part the gel's laws (:func:`law_verdict`) and the other law's fit lies
+            outside the interval: ``{"fitted_with", "other", "other_value"}``; the parameter is then not identified
+            apart from the law. None otherwise.
     """
 
     name: str
@@ -127,6 +130,7 @@ class Interval:
     points: tuple[ProfilePoint, ...] = field(default_factory=tuple)
     outside_prior: bool = False
     split: dict[str, Any] | None = None
+    law: dict[str, Any] | None = None
 
     @property
     def unstable(self) -> bool:
@@ -138,6 +142,11 @@ class Interval:
         span = f"[{self.lower:.4g}, {self.upper:.4g}]"
         if self.identified:
             return f"identified, {span} ({self.source})"
+        if self.law is not None:
+            return (f"NOT IDENTIFIED apart from the gel's law: the recording does not part the laws (the delta-BIC "
+                    f"within the null's spread) and {self.law['other']} puts it at {self.law['other_value']:.4g}, "
+                    f"outside {self.law['fitted_with']}'s interval; the data give {span} (both laws' intervals, "
+                    f"clipped to the prior range [{self.prior[0]:.4g}, {self.prior[1]:.4g}])")
         if self.unstable:
             phases = ", ".join(f"{a:.2f}-{b:.2f} s: {v:.4g} (z {z:+.2f})" for (a, b), v, z in
                                zip(self.split["phases_s"], self.split["leave_out"], self.split["z"]))
@@ -156,7 +165,7 @@ class Interval:
         """fit.json's ``fit.parameters.<name>.interval``."""
         return {"lower": self.lower, "upper": self.upper, "prior": list(self.prior), "identified": self.identified,
                 "open_below": self.open_below, "open_above": self.open_above, "source": self.source,
-                "outside_prior": self.outside_prior, "split": self.split,
+                "outside_prior": self.outside_prior, "split": self.split, "law": self.law,
                 "profile": [{"delta_u": p.delta_u, "value": p.value, "z": p.z, "delta_cost": p.delta_cost}
                             for p in self.points]}
 
@@ -440,6 +449,38 @@ def split_verdict(specs: Sequence[ParameterSpec], u_hat: np.ndarray, intervals: 
         hi = max([_value(spec, max(highs))] + ([iv.upper] if math.isfinite(iv.upper) else []))
         widened = _clipped(spec.name, iv.value, lo, hi, iv.prior, iv.source, iv.points)
         out[spec.name] = replace(widened, identified=False, split=summary)
+    return out
+
+
+def law_verdict(intervals: Mapping[str, Interval], chosen: str, other: str, decided: bool,
+                fitted: Mapping[str, Mapping[str, float]]) -> dict[str, Interval]:
+    """The intervals with the gel law's structural uncertainty (model uncertainty: Draper 1995, JRSS B 57(1)):
+    where the recording did not part the laws (``decided`` False: the other law fitted better, but within the
+    null's spread of the delta-BIC, :class:`sysid.gel_law.GelLawChoice`), a parameter whose value under the other law
+    (its step at the fit's start, ``fitted[other]``) lies outside the interval fitted with ``chosen`` is not
+    identified apart from the law: its interval widened to hold the other law's value with the same relative
+    2-sigma half-widths (log coordinates), clipped to the prior range. Decided choices and parameters inside their
+    interval are returned as they are.
+
+    Args:
+        intervals: name -> :class:`Interval` of the fit made with ``chosen``.
+        chosen, other: the law replayed and the other law compared.
+        decided: :attr:`sysid.gel_law.GelLawChoice.decided`.
+        fitted: law -> name -> value (parameter units) after each law's step.
+    """
+    out = dict(intervals)
+    values = fitted.get(other) or {}
+    if decided or not values:
+        return out
+    for name, iv in intervals.items():
+        v_o = values.get(name)
+        if v_o is None or not (v_o > 0.0 and iv.value > 0.0 and iv.lower > 0.0) or iv.lower <= v_o <= iv.upper:
+            continue
+        lo = min(iv.lower, v_o * iv.lower / iv.value)
+        hi = max(iv.upper, v_o * iv.upper / iv.value)
+        widened = _clipped(name, iv.value, lo, hi, iv.prior, iv.source, iv.points)
+        out[name] = replace(widened, identified=False, split=iv.split,
+                            law={"fitted_with": chosen, "other": other, "other_value": float(v_o)})
     return out
 
 

@@ -256,3 +256,26 @@ def test_a_nuisance_part_wider_than_the_prior_opens_the_side_without_overflow():
     out = profile_intervals(p.residual, p.specs, u, J, e, big, judge(p.specs, values, sigma, prior), p.t, DT, 2)
     assert out["a"].open_below and out["a"].open_above and (out["a"].lower, out["a"].upper) == pytest.approx(prior["a"])
     assert out["b"].identified
+
+
+def test_a_gel_law_the_recording_does_not_part_from_the_other_widens_the_values_it_moves():
+    """Where the other gel law fitted better but within the null's spread (not decided), a value that law puts
+    outside the chosen law's interval is not identified apart from the law, its interval widened to hold the other
+    law's value with the same relative half-widths; a decided choice, or a value inside, changes nothing."""
+    from sysid.identifiability import Interval, law_verdict
+
+    def iv(name, value, lo, hi):
+        return Interval(name, value, lo, hi, (value / 3.0, value * 3.0), True, False, False)
+
+    intervals = {"gel.youngs_modulus": iv("gel.youngs_modulus", 2.2e5, 1.65e5, 2.79e5),
+                 "friction.gel_sheet": iv("friction.gel_sheet", 0.75, 0.65, 0.85)}
+    fitted = {"stable_neohookean": {"gel.youngs_modulus": 2.7e5, "friction.gel_sheet": 0.78},
+              "green_strain": {"gel.youngs_modulus": 2.94e5, "friction.gel_sheet": 0.79}}
+    out = law_verdict(intervals, "stable_neohookean", "green_strain", False, fitted)
+    modulus = out["gel.youngs_modulus"]
+    assert not modulus.identified and modulus.law["other_value"] == 2.94e5
+    assert modulus.lower == 1.65e5 and modulus.upper == pytest.approx(2.94e5 * 2.79 / 2.2)
+    assert modulus.lower < 2.94e5 < modulus.upper and "apart from the gel's law" in modulus.words()
+    assert modulus.summary()["law"]["other"] == "green_strain"
+    assert out["friction.gel_sheet"] is intervals["friction.gel_sheet"]  # 0.79 inside [0.65, 0.85]
+    assert law_verdict(intervals, "stable_neohookean", "green_strain", True, fitted) == intervals
