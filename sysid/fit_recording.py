@@ -439,8 +439,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     if law is not None:  # a law the recording does not part from the other carries its own bias into the values
         other = next((k for k in law.fitted if k != law.chosen), law.chosen)
         judged = law_verdict(result.intervals, law.chosen, other, law.decided, law.fitted)
-        notes.extend(not_identified_note(judged[n]) for n in judged
-                     if judged[n] is not result.intervals[n] and result.intervals[n].identified)
+        result.warnings.extend(not_identified_note(judged[n]) for n in judged
+                               if judged[n] is not result.intervals[n] and result.intervals[n].identified)
         result.intervals = judged
     result.warnings[:0] = list(notes)
     if wrench is not None and wrench.tripped:
