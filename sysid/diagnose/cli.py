@@ -60,8 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="signature stage: where the recording shows the card carried up by the gel (a lift), the "
                         "gel's tack (bonds released at the recorded peel, its compliant shear layer fitted from the "
                         "carried card) is part of the nominal model before the calibration, as in thinshell sysid "
-                        "(sysid.diagnose.tack; the recording decides: no carried row, no tack and no replay). Default: on; "
-                        "--no-tack: a lift's card stays on the table")
+                        "(sysid.diagnose.tack; the recording decides: no carried row, no tack and no replay). Default: off "
+                        "(opt-in, as in thinshell sysid): a lift's card stays on the table")
     p.add_argument("--drive", action=argparse.BooleanOptionalAction, default=True,
                    help="signature stage: calibrate the arm's impedance along the sensor normal (spring and damper) "
                         "from the recorded command and measured pose (ee/pose_cmd, ee/pose) and the normal load, and "
