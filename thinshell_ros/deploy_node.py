@@ -261,6 +261,8 @@ class DeployNode(Node):
         self.abort_published = 0
         self.abort_action = ""  # "holding" | "retracting" once aborted while running
         self.aborted_at: float | None = None
+        # (topic, header stamp in ns) of the measured wrench that tripped the wrench limit, when one did
+        self.abort_measurement: tuple[str, int] | None = None
         self._last_tick: float | None = None
         self._measured: dict[str, np.ndarray] = {}
         self._wrench_seen: set[str] = set()
@@ -526,7 +528,8 @@ class DeployNode(Node):
             if now is not None:
                 self.watchdog.seen(self._resolved[topic], now, time.monotonic())
             self._wrench_seen.add(topic)
-            wrench = wrench_in_sensor(cv.wrench_from_msg(msg)[1], self.ft_in_sensor)
+            stamp_ns, raw = cv.wrench_from_msg(msg)
+            wrench = wrench_in_sensor(raw, self.ft_in_sensor)
             if self.tare is not None and self._tare_span is not None and now is not None \
                     and self._tare_span[0] <= now <= self._tare_span[1]:
                 self.tare.add(topic, wrench)
@@ -536,6 +539,7 @@ class DeployNode(Node):
             if self.state == "running":
                 reason = self.guard.check(self._resolved[topic], wrench)
                 if reason:
+                    self.abort_measurement = (self._resolved[topic], int(stamp_ns))
                     self.abort(reason)
         return on_wrench
 
