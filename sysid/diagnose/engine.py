@@ -550,6 +550,10 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         its change, each such channel weighted equally (:func:`heldout.supported_effect`; effect sizes: a
         candidate that only correlates with a larger gap, or with the small systematic mismatch that even
         a nominal recording has and that a powerful test detects, is not named).
+        A physics refit whose beta ends at 0 (a one-sided effect clipped where the training rows ask
+        for its opposite) is not accepted: with the effect off, its change is the re-estimate of the
+        nominal parameters that every physics refit carries (``J_theta``, projected out of the score
+        test), which describes the nominal fit's gap, not the effect.
         Latency must also pass its discriminating test (cross-correlation lag agrees with tau), stiction
         its line of action test (:func:`discriminate.line_of_action`: the recorded wrench supports the
         refit's change at one scale on the force and on the moment axes, level ``alpha``).
@@ -592,7 +596,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
                       "heldout_statistic": test.statistic, "heldout_p": test.p_value,
                       "channel_scales": {ch: t.beta for ch, t in worse.items()},
                       "contradicted_on": contradicted, "params": rf.params, "scale": 1.0,
-                      "train_improves": bool(sse1 < sse0)}
+                      "train_improves": bool(sse1 < sse0), "effect_on": bool(np.any(np.asarray(rf.beta) != 0.0))}
             if e == "latency":
                 # discriminating test: a delay of the stream shows as a cross-correlation lag between the
                 # recorded and the predicted rates of change that agrees with the refitted tau
@@ -611,6 +615,15 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             d["heldout_p_holm"] = float(a)
             explains = bool(rj and d["train_improves"] and d["heldout_rms_after"] < d["heldout_rms_before"]
                             and d["explained_fraction"] >= s.min_explained and d["supported_ms_removed"] >= s.min_gain)
+            if explains and not d["effect_on"]:
+                # the refit switched the effect off (a one-sided beta clipped at 0: the training rows ask
+                # for its opposite); what its change explains is the re-estimate of the nominal
+                # parameters that every physics refit carries, whose directions the score test projected
+                # out: a description of the nominal fit's gap, not evidence of the effect
+                explains = False
+                self.notes.append(f"{e}: its refit leaves the effect off (beta 0) and explains "
+                                  f"{d['explained_fraction']:.0%} of the held-out excess by the nominal parameters' "
+                                  f"re-estimate alone: not named")
             refuted = [name for name, ok in (("xcorr", d.get("xcorr_agrees", True)),
                                               ("line_of_action", d.get("line_of_action_p", 1.0) > s.alpha),
                                               ("channel_consistency", not d["contradicted_on"])) if not ok]

@@ -199,3 +199,33 @@ def test_a_candidate_contradicted_on_a_channel_is_not_named_and_a_weaker_proxy_i
     assert out["gel_viscoelasticity"]["heldout_gain"] > out["anisotropic_bending"]["heldout_gain"]
     assert not out["anisotropic_bending"]["accepted"]
     assert decide({"anisotropic_bending": aniso})["anisotropic_bending"]["accepted"]  # alone it would be named
+
+
+def test_a_refit_that_leaves_its_effect_off_is_not_named_nor_put_before_the_effect():
+    """Every physics refit re-estimates the nominal parameters with its beta (their directions were projected
+    out of the score test); where the training rows ask for a one-sided effect's opposite, beta is clipped to 0
+    and the refit's change is that re-estimate alone. It explains the nominal fit's gap, not the effect, so it
+    is not named, and it does not take the first place of the acceptance sequence from the effect that is
+    there (the demo's DDS recordings: the sheet drag refitted at 0 named beside, or in place of, the gel)."""
+    rng = np.random.default_rng(17)
+    T = 47
+    pred0 = np.zeros((T, 6))
+    change = 3.0 * _wrench_change(T) * SIGMA
+    data = pred0 + change + _correlated_noise(rng, T, 6, rho=0.3, common=0.2) * SIGMA
+    # the drag switched off: its replay moves only the nominal parameters, which follow most of the change
+    # (and, on its own rows, a little more of it than the effect's refit: first in the sequence by gain)
+    drag_off = Refit(np.array([0.0]), {"candidate.damping": 0.0, "gel.youngs_modulus": 4.2e5},
+                     {"wrench": pred0 + 0.97 * change}, {"gel.youngs_modulus": 4.2e5})
+    gel = Refit(np.array([0.4]), {"candidate.gel_viscoelasticity": 0.4, "gel.youngs_modulus": 3.6e5},
+                {"wrench": pred0 + 0.9 * change}, {"candidate.gel_viscoelasticity": 0.4, "gel.youngs_modulus": 3.6e5})
+    out, notes = _decide(data, pred0, {"damping": drag_off, "gel_viscoelasticity": gel})
+    assert out["damping"]["explained_fraction"] > 0.5 and not out["damping"]["effect_on"]
+    assert out["damping"]["effect_gain"] > out["gel_viscoelasticity"]["effect_gain"]
+    assert not out["damping"]["accepted"] and not out["damping"]["acceptable_alone"]
+    assert out["gel_viscoelasticity"]["accepted"] and out["gel_viscoelasticity"]["scale"] == 1.0
+    assert any("damping: its refit leaves the effect off" in n for n in notes)
+    # the same refit with the drag on (any beta > 0) is judged as before: it explains the change and is named
+    drag_on = Refit(np.array([1e-3]), {"candidate.damping": 1e-3}, {"wrench": pred0 + 0.97 * change},
+                    {"candidate.damping": 1e-3})
+    out, _ = _decide(data, pred0, {"damping": drag_on})
+    assert out["damping"]["accepted"] and out["damping"]["effect_on"]
