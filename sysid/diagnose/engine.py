@@ -741,8 +741,9 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             return stats.HeldoutResult(0.0, beta0, 0.0, 1.0, 1.0, int(np.size(a)))
 
     def _ties(self, ctx, accepted, refits, tests, train=None, folds=()) -> list[dict[str, Any]]:
-        """Confusable pairs that were both refitted: resolved by latency's cross-correlation test, or
-        by the nested held-out comparison (:meth:`_nested`, its figures reported under ``nested``)."""
+        """Confusable pairs that were both refitted, each with its effect on: resolved by latency's
+        cross-correlation test, or by the nested held-out comparison (:meth:`_nested`, its figures
+        reported under ``nested``)."""
         out = []
         for a, b in CONFUSABLE:
             if a in refits and b in refits:
@@ -751,6 +752,9 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
                     resolved_by = latency.tie_resolution(refits["latency"].params.get("latency_by_channel_s", {}),
                                                          self._decisions.get("latency", {}).get("xcorr_agrees", True))
                     winner = "latency"
+                elif not all(self._decisions.get(x, {}).get("effect_on", True) for x in (a, b)):
+                    # a refit that leaves its effect off is no mechanism to confuse the other with
+                    continue
                 elif folds and train is not None:
                     nest = self._nested(ctx, refits, train, folds, a, b)
                     if nest is not None:

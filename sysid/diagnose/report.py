@@ -172,6 +172,9 @@ def _rejections(d: Mapping[str, Any] | None, alpha: float, bic: float, floor: An
     why = []
     if not d.get("train_improves", True):
         why.append("its refit does not lower the training residual")
+    if d.get("effect_on") is False:
+        why.append("its refit leaves the effect off (beta 0): what it explains is the re-estimate of the nominal "
+                   "parameters alone")
     if d.get("contradicted_on"):
         why.append("its refit moves " + ", ".join(d["contradicted_on"]) + " away from the recording")
     p_h = d.get("heldout_p_holm", d.get("heldout_p"))

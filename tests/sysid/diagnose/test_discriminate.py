@@ -1,5 +1,6 @@
 """Stiction's line of action test: calibration of the scale-equality test, its power on a shifted
-centre of pressure, and the engine's handling of a refuted candidate."""
+centre of pressure, and the engine's handling of a refuted candidate and of a refit that leaves its
+effect off."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from sysid.diagnose import discriminate, engine
+from sysid.diagnose import discriminate, engine, report
 from sysid.diagnose.candidates import DiagnosisContext, Refit
 from sysid.diagnose.stats import scale_equality_test
 
@@ -218,12 +219,21 @@ def test_a_refit_that_leaves_its_effect_off_is_not_named_nor_put_before_the_effe
                      {"wrench": pred0 + 0.97 * change}, {"gel.youngs_modulus": 4.2e5})
     gel = Refit(np.array([0.4]), {"candidate.gel_viscoelasticity": 0.4, "gel.youngs_modulus": 3.6e5},
                 {"wrench": pred0 + 0.9 * change}, {"candidate.gel_viscoelasticity": 0.4, "gel.youngs_modulus": 3.6e5})
-    out, notes = _decide(data, pred0, {"damping": drag_off, "gel_viscoelasticity": gel})
+    refits = {"damping": drag_off, "gel_viscoelasticity": gel}
+    model, ctx = _wrench_ctx(data, pred0)
+    d = engine.BagDiagnosis.__new__(engine.BagDiagnosis)
+    d.model, d.settings, d.notes, d.tested, d.heldout = model, engine.Settings(), [], ("wrench",), []
+    train = {"wrench": np.arange(T) % 2 == 0}
+    folds = [engine.heldout.block_fold(model, ctx.prediction, train, refits)]
+    out = d._decisions = d._decide(ctx, refits, train, folds)
     assert out["damping"]["explained_fraction"] > 0.5 and not out["damping"]["effect_on"]
     assert out["damping"]["effect_gain"] > out["gel_viscoelasticity"]["effect_gain"]
     assert not out["damping"]["accepted"] and not out["damping"]["acceptable_alone"]
     assert out["gel_viscoelasticity"]["accepted"] and out["gel_viscoelasticity"]["scale"] == 1.0
-    assert any("damping: its refit leaves the effect off" in n for n in notes)
+    assert any("damping: its refit leaves the effect off" in n for n in d.notes)
+    # no tie with a mechanism that is off, and the report says why it is not named
+    assert d._ties(ctx, ["gel_viscoelasticity"], refits, [], train, folds) == []
+    assert any("leaves the effect off" in why for why in report._rejections(out["damping"], 0.01, 10.0, 0.25))
     # the same refit with the drag on (any beta > 0) is judged as before: it explains the change and is named
     drag_on = Refit(np.array([1e-3]), {"candidate.damping": 1e-3}, {"wrench": pred0 + 0.97 * change},
                     {"candidate.damping": 1e-3})
