@@ -53,8 +53,8 @@ def test_a_second_candidate_needs_the_heldout_recording_to_support_it():
     rng = np.random.default_rng(2)
     pred0 = np.zeros((T, 6))
     c1, c2 = 3.0 * _wrench_change(T) * SIGMA, 4.0 * _second_change() * SIGMA
-    refits = {"gel_viscoelasticity": Refit(np.zeros(1), {}, {"wrench": pred0 + c1}),
-              "damping": Refit(np.zeros(1), {}, {"wrench": pred0 + 0.8 * c1 + c2})}
+    refits = {"gel_viscoelasticity": Refit(np.array([0.4]), {}, {"wrench": pred0 + c1}),
+              "damping": Refit(np.array([50.0]), {}, {"wrench": pred0 + 0.8 * c1 + c2})}
     noise = lambda: rng.normal(size=(T, 6)) * SIGMA  # noqa: E731
     primary = pred0 + 1.3 * c1 + c2 + noise()
     out = _decide_with_heldout_recording((primary, pred0 + 1.3 * c1 + noise()), pred0, refits)
