@@ -23,10 +23,9 @@ def replay_model(evidence: Any, dt: float, window: int, **options: Any) -> tuple
     command and then takes the next ones at once, under a commander that falls behind it), a replay moving
     linearly between its step ends misses that staircase by up to a robot step's travel at the stamps inside the
     step; a note says how many steps and the step that would follow it (the ``pose`` stream's period,
-    :func:`sysid.command_path.replay_step`). The replay keeps ``dt``: at the robot's step the demo's hidden scene
-    under an emulated lag named the true effect alone, but a DDS recording of it named ``damping`` in place of
-    the true ``gel_viscoelasticity`` (docs/benchmarks_log.md "2026-11-28 (session 60, 49demo2)").
-    Then :func:`denoise_controls` with ``window`` (0: the measured pose replayed as recorded).
+    :func:`sysid.command_path.robot_step_ns`, as :func:`sysid.command_path.replay_step` chooses it). The replay
+    keeps ``dt`` (docs/benchmarks_log.md "2026-11-28 (session 60, 49demo2)" measured the robot's step as the
+    default). Then :func:`denoise_controls` with ``window`` (0: the measured pose replayed as recorded).
 
     Args:
         evidence: the recording's ``Evidence``.
@@ -40,13 +39,13 @@ def replay_model(evidence: Any, dt: float, window: int, **options: Any) -> tuple
     Raises:
         CalibrationError: as ``ObservationModel``.
     """
-    from sysid.command_path import held_path_jumps_inside, replay_step
+    from sysid.command_path import held_path_jumps_inside, robot_step_ns
     from sysid.observation import REPLAY_TOL_VELOCITY, ObservationModel
 
     notes = []
-    step = replay_step(evidence, dt, REPLAY_TOL_VELOCITY)
+    jumps = held_path_jumps_inside(evidence, int(round(dt * 1e9)), REPLAY_TOL_VELOCITY)
+    step = robot_step_ns(evidence) * 1e-9 if jumps else dt  # sysid.command_path.replay_step's choice
     if step != dt:
-        jumps = held_path_jumps_inside(evidence, int(round(dt * 1e9)), REPLAY_TOL_VELOCITY)
         notes.append(f"the path the robot held (its commands from when it took each) jumps inside {jumps} replay "
                      f"steps of {dt * 1e3:g} ms, which the replay moves through linearly; --dt {step:g} replays it "
                      "at the robot's step")
