@@ -106,10 +106,12 @@ def main() -> int:
     if args.account:
         _count_launches(phases)
     cg_iterations = _count_cg_iterations()
+    memory = _Memory()
     for B in _sizes(args.B):
         sc.SolverConfig = config
         for rec in timers.values():
             rec[0], rec[1] = 0, 0.0
+        memory.before()
         t0 = time.perf_counter()
         try:
             run = _TaskRun(args.task, B, args.steps + 1, backend, True) if args.task else \
@@ -121,6 +123,7 @@ def main() -> int:
             _profile_population(run, B, args, timers, cg_iterations)
         else:
             _profile_size(run, B, args, timers, cg_iterations, phases)
+        memory.after(B)
         del run
         if args.account and not args.task and B in _sizes(args.account):  # again, the device synchronised
             run = _with_config(config, orig, lambda: _FormingRun(B, args.steps + 1, backend, lockstep=True))
@@ -129,6 +132,38 @@ def main() -> int:
             phases.sync = None
             del run
     return 0
+
+
+class _Memory:
+    """This process's GPU memory (``nvidia-smi``, as ``thinshell bench batch``'s ``gpu_mib_per_copy``) and resident
+    host memory around each size's build and steps, printed per size: the process's totals after the steps, their
+    growth over the size and per copy, and the free GPU memory left. Taichi keeps freed device memory for reuse, so
+    after a larger size the growth of a smaller one reads low: the sizes run in increasing order, where the growth of
+    each is what it adds beyond the largest before it, and the total after it bounds its own use from above."""
+
+    def __init__(self) -> None:
+        from sim_core.batch.sizing import MIB, gpu_free_bytes, gpu_used_bytes, host_used_bytes
+
+        self._mib, self._gpu, self._host, self._free = MIB, gpu_used_bytes, host_used_bytes, gpu_free_bytes
+        self._start = (None, None)
+
+    def before(self) -> None:
+        """Record the memories before a size's build."""
+        self._start = (self._gpu(), self._host())
+
+    def after(self, B: int) -> None:
+        """Print the memories after size ``B``'s steps against :meth:`before`'s."""
+        (gpu0, host0), gpu1, host1, free = self._start, self._gpu(), self._host(), self._free()
+        mib = self._mib
+
+        def part(name, a, b):
+            if a is None or b is None:
+                return f"{name} unknown"
+            return (f"{name} {b / mib:.0f} MiB after the steps (+{(b - a) / mib:.0f} over this size, "
+                    f"{(b - a) / mib / B:.2f} MiB a copy; {b / mib / B:.2f} MiB a copy of the process's total)")
+
+        print(f"B={B} memory: {part('GPU', gpu0, gpu1)}; {part('host RSS', host0, host1)}; GPU free "
+              + ("unknown" if free is None else f"{free / mib:.0f} MiB"), flush=True)
 
 
 def _profile_population(run, B: int, args, timers: dict, cg_iterations: list) -> None:
