@@ -69,6 +69,11 @@ def main() -> int:
                          "steps of each size in SIZES (comma-separated, among --B), a new batch of that size stepped "
                          "again with the device synchronised at every phase change, so that each phase is charged its "
                          "own device work")
+    ap.add_argument("--schedules", default=None, metavar="NAMES",
+                    help="Forming: the envelope Cholesky's schedule on CUDA for each entry of --B in turn "
+                         "(comma-separated, e.g. dots,panels: envelope_cholesky.CUDA_SCHEDULE, and SCHEDULE for the CPU "
+                         "arch, set before the entry's batch is built), so that schedules are compared in one process; with --account a size is "
+                         "accounted once per schedule")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
     add_emulation_flag(ap)
@@ -107,7 +112,16 @@ def main() -> int:
         _count_launches(phases)
     cg_iterations = _count_cg_iterations()
     memory = _Memory()
-    for B in _sizes(args.B):
+    sizes = _sizes(args.B)
+    schedules = _schedules(args.schedules, len(sizes), ap)
+    accounted: set = set()
+    for B, schedule in zip(sizes, schedules):
+        if schedule is not None:
+            from sim_core.ti_kernels import envelope_cholesky
+
+            envelope_cholesky.CUDA_SCHEDULE = envelope_cholesky.SCHEDULE = schedule  # (SCHEDULE: on the CPU arch)
+            print(f"B={B}: the envelope's schedule on CUDA {schedule}", flush=True)
+        label = str(B) if schedule is None else f"{B} {schedule}"
         sc.SolverConfig = config
         for rec in timers.values():
             rec[0], rec[1] = 0, 0.0
@@ -119,16 +133,21 @@ def main() -> int:
         finally:
             sc.SolverConfig = orig
         _print_parts(f"B={B} build", timers, time.perf_counter() - t0)
+        if schedule is not None:
+            solver = run.batch.lockstep.solver if run.batch.lockstep is not None else None
+            print(f"B={label}: the batch's envelope schedule "
+                  f"{getattr(getattr(solver, 'pcg', None), 'schedule', None)}", flush=True)
         if args.task:
             _profile_population(run, B, args, timers, cg_iterations)
         else:
-            _profile_size(run, B, args, timers, cg_iterations, phases)
+            _profile_size(run, B, args, timers, cg_iterations, phases, label)
         memory.after(B)
         del run
-        if args.account and not args.task and B in _sizes(args.account):  # again, the device synchronised
+        if args.account and not args.task and B in _sizes(args.account) and (B, schedule) not in accounted:
+            accounted.add((B, schedule))  # again, the device synchronised
             run = _with_config(config, orig, lambda: _FormingRun(B, args.steps + 1, backend, lockstep=True))
             phases.sync = _device_sync()
-            _profile_size(run, B, args, timers, cg_iterations, phases, f"{B} (account: synchronised phases)")
+            _profile_size(run, B, args, timers, cg_iterations, phases, f"{label} (account: synchronised phases)")
             phases.sync = None
             del run
     return 0
@@ -511,6 +530,18 @@ def _phase_specs(backend: str) -> list:
 def _sizes(text) -> list[int]:
     """Batch sizes from a comma-separated ``text`` (``--B``, ``--account``)."""
     return [int(b) for b in str(text).split(",")]
+
+
+def _schedules(text, count: int, ap) -> list:
+    """The envelope schedules of ``--schedules`` (``text``, comma-separated, one for each of the ``count`` entries of
+    ``--B``), or ``count`` Nones without it; ``ap.error`` on a count that differs or an unknown name."""
+    if text is None:
+        return [None] * count
+    names = [name.strip() for name in str(text).split(",")]
+    known = ("pairs", "rows", "dots", "panels", "blocks")
+    if len(names) != count or any(name not in known for name in names):
+        ap.error(f"--schedules needs one of {'|'.join(known)} for each of the {count} entries of --B; got {text!r}")
+    return names
 
 
 def _with_config(config, orig, make):
