@@ -44,10 +44,20 @@ def _run(batch, steps=STEPS):
     return per_step, results
 
 
-@pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG, LOCKSTEP_ENVELOPE], ids=["direct", "device-cg", "envelope"])
-def test_lockstep_batch_of_three_gives_the_states_of_three_separate_runs(model, config):
+@pytest.mark.parametrize("config, schedule", [(LOCKSTEP, None), (LOCKSTEP_CG, None), (LOCKSTEP_ENVELOPE, None),
+                                              (LOCKSTEP_ENVELOPE, "panels")],
+                         ids=["direct", "device-cg", "envelope", "envelope-panels"])
+def test_lockstep_batch_of_three_gives_the_states_of_three_separate_runs(model, config, schedule, monkeypatch):
+    """Each copy at its separate run's states; ``envelope-panels``: the envelope factorised by vertex panels (CUDA's
+    schedule, ``envelope_cholesky.CUDA_SCHEDULE``; on the CPU arch ``SCHEDULE``), every other case its default."""
+    if schedule is not None:
+        from sim_core.ti_kernels import envelope_cholesky
+
+        monkeypatch.setattr(envelope_cholesky, "SCHEDULE", schedule)
     batch = _lockstep_batch(model, config)
     assert batch.lockstep is not None
+    if schedule is not None:
+        assert batch.lockstep.solver.pcg.schedule == schedule
     per_step, results = _run(batch)
     solver = batch.lockstep.solver
     for res in results:
