@@ -28,13 +28,13 @@ D^-1/2`` is the Cholesky factor, Golub & Van Loan, Matrix Computations, 4th ed.,
 thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Four orders of the same arithmetic
 (``schedule``):
 
-- ``"dots"`` (the default, :data:`CUDA_SCHEDULE` and :data:`SCHEDULE`), left-looking by columns (George & Liu,
+- ``"dots"`` (the default elsewhere than on CUDA, :data:`SCHEDULE`), left-looking by columns (George & Liu,
   Sec. 4.2's inner-product form): column ``j``'s entries ``w_ij = a_ij - sum_k w_ik w_jk / d_k`` (``i = j`` and the
   rows of ``j``'s front, ``k`` from ``max(first[i], first[j])`` to ``j - 1``) are dot products of two contiguous segments of envelope rows, independent of each other;
   ``group`` lanes of a warp take one (``group`` consecutive ``k`` a pass, two sums in flight, then a shuffle sum), the
   copy's ``lanes / group`` groups share the column's entries, and each factor entry is written once. ``1 / d_j`` is
   kept per copy (``(B m,)`` float64) for the later columns.
-- ``"panels"``, left-looking by vertices (a supernode of three columns: a vertex's rows have one first column and its
+- ``"panels"`` (the default on CUDA, :data:`CUDA_SCHEDULE`), left-looking by vertices (a supernode of three columns: a vertex's rows have one first column and its
   columns nested fronts, ``front(j + 1) = front(j) - {j + 1}``, so long as a row's first column is a vertex's first
   DoF, as the order makes it and a widening keeps it): two synchronised passes a vertex instead of three. In the
   first each row ``i`` of the vertex and of its front takes its three dot products with the vertex's rows over ``k <
@@ -58,8 +58,8 @@ takes 26-28 ms with ``"dots"`` at 256 threads a copy (group 4; ``"pairs"`` 36.5,
 elimination kernels alone 8.1 ms (``"panels"`` 6.4; B = 256: 3.6 / 2.7). Without the CG's set-up (session 53) the
 call took the same at B = 256 (12.5 -> 12.4 ms, kernels 3.5-3.7 ms): what is left outside the kernels is not the
 preconditioner but the vertex blocks' upload and expansion, the outside check and the launches (not timed apart;
-docs/gpu_roofline.md). ``"dots"`` stays the default on CUDA: the lockstep's steady
-Forming rate at B = 1024 read 1,724 scene-steps/s with it against 1,573 with ``"panels"`` in the same call. A pivot that is not
+docs/gpu_roofline.md). In a lockstep Forming step (H200, B = 1024, session 62) ``"panels"``' kernels take 44.3 ms a
+step against ``"dots"``' 58.4, each phase's device work synchronised in one process (:data:`CUDA_SCHEDULE`). A pivot that is not
 positive (or not finite) marks its copy :attr:`BatchedPCG.indefinite` (the matrix is not positive definite: exact,
 unlike the CG's ``p.Ap <= 0``); the elimination goes on with 1 in its place, and that copy's solution is not used.
 
@@ -104,10 +104,12 @@ and 8 tie (27.7 / 27.6 ms), 2 and 16 are slower (32.6 / 34.3; H100, B = 1024, se
 SCHEDULES = ("pairs", "rows", "dots", "panels", "blocks")
 """How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""
 
-CUDA_SCHEDULE = "dots"
-"""The schedule of a :class:`BatchedEnvelope` given none on CUDA. ``"panels"``' kernels are faster (6.4 against 8.1 ms
-at B = 1024, 2.7 against 3.6 at 256, H100) but the lockstep's steady Forming rate did not follow in the one A/B made
-(1,573 against 1,724 scene-steps/s at B = 1024, session 52): opt-in. ``"blocks"`` (panels of columns,
+CUDA_SCHEDULE = "panels"
+"""The schedule of a :class:`BatchedEnvelope` given none on CUDA. ``"panels"``' gather and factorisation kernels take
+24 % less than ``"dots"``' in a lockstep Forming step (H200, B = 1024, the same process, each phase's device work
+synchronised: 44.3 against 58.4 ms a step, 6.0 against 8.1 ms a factorisation at the fourth step; the same Newton
+iterations and factorisations; docs/gpu_roofline.md, session 62), as on one matrix (6.4 against 8.1 ms at B = 1024, 2.7
+against 3.6 at 256, H100, session 52). ``"blocks"`` (panels of columns,
 :mod:`sim_core.ti_kernels.envelope_blocks`) is slower on the device: gather + elimination 10.6-11.8 ms against 8.15,
 solve 7.9-8.2 against 7.25 (panel 12 at 128 / 256 threads a copy, one Forming Newton matrix at B = 1024, H200;
 docs/gpu_roofline.md, session 58's lead section): opt-in."""
