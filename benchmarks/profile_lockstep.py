@@ -34,8 +34,13 @@ factorisation and its substitution, the trial positions, the per-copy scalars' r
 candidate lists) with the kernel launches each made, and after the steps of each size it names (``--account 1024``)
 a new batch of that size stepped again with the device synchronised at every phase change (``ti.sync``), so that
 each phase is charged the device work it queued rather than the phase that next waits (that pass's rate is not the
-bench's: the synchronisations serialise host and device). ``--cprofile`` adds cProfile's tables (incomplete on
-Python 3.12 with Taichi's compiler in the profiled region).
+bench's: the synchronisations serialise host and device). ``--schedules dots,panels,...`` (one for each entry of
+``--B``; a size may repeat) sets the envelope Cholesky's schedule on CUDA (``envelope_cholesky.CUDA_SCHEDULE``, and
+``SCHEDULE`` for the CPU arch) before each entry's batch is built, so that schedules are compared in one process, each
+(size, schedule) accounted once. After each size a memory line: this process's GPU memory (``nvidia-smi``, as
+``thinshell bench batch``'s ``gpu_mib_per_copy``) and resident host memory after its steps, their growth over the size
+and per copy, and the GPU memory free. ``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's
+compiler in the profiled region).
 """
 
 from __future__ import annotations
