@@ -175,6 +175,12 @@ def _rejections(d: Mapping[str, Any] | None, alpha: float, bic: float, floor: An
     if d.get("effect_on") is False:
         why.append("its refit leaves the effect off (beta 0): what it explains is the re-estimate of the nominal "
                    "parameters alone")
+    null = d.get("beyond_reestimate")
+    if d.get("effect_on") is not False and null is not None and not null.get("adds", True):
+        why.append(f"against the nominal parameters re-estimated without it (held-out RMS "
+                   f"{null['heldout_rms_null']:.4g} -> {null['heldout_rms_after']:.4g}, p {null['heldout_p']:.3g}) it "
+                   f"explains {100 * null['explained_fraction']:.0f} % of the held-out excess: the nominal "
+                   f"parameters' move carries its fit")
     if d.get("contradicted_on"):
         why.append("its refit moves " + ", ".join(d["contradicted_on"]) + " away from the recording")
     p_h = d.get("heldout_p_holm", d.get("heldout_p"))
