@@ -406,6 +406,9 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         eval_channels = mismatch_channels or list(model.channels)
         ho_before, ho_after, _, _ = heldout.evaluate(folds, {}, {e: decisions[e]["scale"] for e in accepted},
                                                      eval_channels)
+        # the held-out RMS of the nominal parameters re-estimated without any effect (the physics refits' null)
+        ho_null = (heldout.evaluate(folds, {NULL_MODEL: 1.0}, {}, eval_channels)[0]
+                   if any(NULL_MODEL in f.changes for f in folds) else None)
 
         # ---- locate
         focus = accepted[0] if accepted else (significant[0] if significant else None)
@@ -443,6 +446,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             "explained_by": explained,
             "refit": {"params": refit_params, "rms": rms_summary(model, final),
                       "heldout_rms_before": ho_before, "heldout_rms_after": ho_after,
+                      **({"heldout_rms_null": ho_null} if ho_null is not None else {}),
                       "heldout": "bags" if self.heldout else heldout_label(
                           2 * s.holdout_blocks, getattr(self, "_events", []), getattr(self, "_alternated", ())),
                       "heldout_unit": "whitened RMS (noise units) over " + ", ".join(eval_channels)},

@@ -284,6 +284,8 @@ def test_a_refit_whose_fit_rides_on_the_nominal_parameters_move_is_not_named_and
     # the effect explains what the null leaves: named
     assert gel_null["adds"] and gel_null["explained_fraction"] > 0.5 and gel_null["heldout_p"] < 0.01
     assert out["gel_viscoelasticity"]["accepted"]
+    line = report.why_lines({"extra": {"decisions": out, "library": ["gel_viscoelasticity"], "tests": []}})[0]
+    assert "gel_viscoelasticity: accepted" in line and "against the nominal parameters re-estimated without it" in line
     # an observation-level refit moves no nominal parameter: no null comparison
     assert d._beyond_null("latency", Refit(np.array([0.01]), {"latency_s": 0.01}, {"wrench": pred0}), ["wrench"],
                           [engine.heldout.block_fold(model, ctx.prediction, train, {engine.NULL_MODEL: null})]) is None
