@@ -96,6 +96,10 @@ stiction vs anisotropic bending: in a press-slide both change how the card buckl
 breakaway (on the benchmark's stiction recording at strength 2.9 their refits remove the same held-out
 energy to 0.3 %, and which is named first depends on the linear solver's round-off)."""
 
+NULL_MODEL = "nominal_reestimate"
+"""The held-out folds' key of the nominal parameters' re-estimate without any effect
+(:meth:`~sysid.diagnose.refine.RefitRefinement._reestimate`), the null model of every physics refit."""
+
 
 def _stepped(name: str, value: float, fd_step: float) -> float:
     """``value`` of parameter ``name`` moved by one J_theta step: a factor ``exp(fd_step)``, or for
@@ -260,6 +264,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         t_start = time.perf_counter()
         s = self.settings
         model = self.model
+        self._null = None  # the nominal parameters' re-estimate, set by _refit where physics is refitted
         theta = self._nominal()
         proj = [n for n in self.project]
         base_values = {n: theta.get(n, model.parameter_value(n)) for n in proj}
@@ -367,7 +372,8 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         pred0 = ctx.prediction
         significant = sorted({t["effect"] for t in tests if t["significant"]},
                              key=lambda e: -max(t["result"].statistic for t in tests if t["effect"] == e))
-        folds = self._folds(ctx, train, theta, refits)
+        null = getattr(self, "_null", None)
+        folds = self._folds(ctx, train, theta, {**refits, NULL_MODEL: null} if null is not None else refits)
         decisions = self._decide(ctx, refits, train, folds)
         self._decisions = decisions
         # an effect whose discriminating test confirmed it (latency: the cross-correlation lag of the
@@ -400,6 +406,9 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         eval_channels = mismatch_channels or list(model.channels)
         ho_before, ho_after, _, _ = heldout.evaluate(folds, {}, {e: decisions[e]["scale"] for e in accepted},
                                                      eval_channels)
+        # the held-out RMS of the nominal parameters re-estimated without any effect (the physics refits' null)
+        ho_null = (heldout.evaluate(folds, {NULL_MODEL: 1.0}, {}, eval_channels)[0]
+                   if any(NULL_MODEL in f.changes for f in folds) else None)
 
         # ---- locate
         focus = accepted[0] if accepted else (significant[0] if significant else None)
@@ -437,6 +446,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             "explained_by": explained,
             "refit": {"params": refit_params, "rms": rms_summary(model, final),
                       "heldout_rms_before": ho_before, "heldout_rms_after": ho_after,
+                      **({"heldout_rms_null": ho_null} if ho_null is not None else {}),
                       "heldout": "bags" if self.heldout else heldout_label(
                           2 * s.holdout_blocks, getattr(self, "_events", []), getattr(self, "_alternated", ())),
                       "heldout_unit": "whitened RMS (noise units) over " + ", ".join(eval_channels)},
@@ -511,6 +521,11 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
                     continue
                 params, out[c.name] = self._linearised_refit(ctx, c, self._signatures[c.name], J_theta, train, theta)
                 chains.append(self._refit_chain(ctx, c, params, out, train, theta, i, notes))
+            # the restricted model every physics refit is judged against (refine.RefitRefinement._reestimate)
+            reest = self._reestimate(ctx, J_theta, train, theta)
+            if reest is not None:
+                self._null = reest[1]
+                chains.append(self._reestimate_chain(ctx, reest[0], reest[1], len(physics), notes))
             self._run_chains(chains, "refits")
             self._merge_notes(notes)
         return out
@@ -553,7 +568,10 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         A physics refit whose beta ends at 0 (a one-sided effect clipped where the training rows ask
         for its opposite) is not accepted: with the effect off, its change is the re-estimate of the
         nominal parameters that every physics refit carries (``J_theta``, projected out of the score
-        test), which describes the nominal fit's gap, not the effect.
+        test), which describes the nominal fit's gap, not the effect. For the same reason a physics
+        refit must also add to the null model, the nominal parameters re-estimated without any effect
+        and replayed once (:meth:`_beyond_null`): against it, the held-out test must reject and the
+        refit remove ``min_explained`` of the held-out excess the null leaves.
         Latency must also pass its discriminating test (cross-correlation lag agrees with tau), stiction
         its line of action test (:func:`discriminate.line_of_action`: the recorded wrench supports the
         refit's change at one scale on the force and on the moment axes, level ``alpha``).
@@ -590,13 +608,15 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             p_worse, rej_worse = (stats.holm([t.p_below for t in worse.values()], s.alpha) if worse else ([], []))
             contradicted = [ch for ch, rj in zip(worse, rej_worse) if rj]
             eff = heldout.supported_effect(per_channel, lambda prods: self._heldout_test(prods, 0.0).p_value <= s.alpha)
+            null = self._beyond_null(e, rf, chans, folds)
             out[e] = {"delta_bic": float(dbic), "likelihood_ratio": float(lr), "heldout_rms_before": before,
                       "heldout_rms_after": after, **eff.figures(),
                       "heldout_gain": float(np.sum(2.0 * a - b)), "heldout_scale": test.beta,
                       "heldout_statistic": test.statistic, "heldout_p": test.p_value,
                       "channel_scales": {ch: t.beta for ch, t in worse.items()},
                       "contradicted_on": contradicted, "params": rf.params, "scale": 1.0,
-                      "train_improves": bool(sse1 < sse0), "effect_on": bool(np.any(np.asarray(rf.beta) != 0.0))}
+                      "train_improves": bool(sse1 < sse0), "effect_on": bool(np.any(np.asarray(rf.beta) != 0.0)),
+                      **({"beyond_reestimate": null} if null is not None else {})}
             if e == "latency":
                 # discriminating test: a delay of the stream shows as a cross-correlation lag between the
                 # recorded and the predicted rates of change that agrees with the refitted tau
@@ -624,6 +644,15 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
                 self.notes.append(f"{e}: its refit leaves the effect off (beta 0) and explains "
                                   f"{d['explained_fraction']:.0%} of the held-out excess by the nominal parameters' "
                                   f"re-estimate alone: not named")
+            null = d.get("beyond_reestimate")
+            if explains and null is not None and not null["adds"]:
+                # what the refit explains, the nominal parameters re-estimated without the effect explain
+                # as well: the effect's strength rides on the nominal parameters' move
+                explains = False
+                self.notes.append(f"{e}: its refit explains {d['explained_fraction']:.0%} of the held-out excess, "
+                                  f"but against the nominal parameters re-estimated without it (held-out whitened "
+                                  f"RMS {null['heldout_rms_null']:.3f}) only {null['explained_fraction']:.0%} "
+                                  f"(p {null['heldout_p']:.2g}): not named")
             refuted = [name for name, ok in (("xcorr", d.get("xcorr_agrees", True)),
                                               ("line_of_action", d.get("line_of_action_p", 1.0) > s.alpha),
                                               ("channel_consistency", not d["contradicted_on"])) if not ok]
@@ -666,6 +695,29 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
                 base.update(cond)
                 base_scales[e] = fig["scale"]
         return out
+
+    def _beyond_null(self, e, rf, chans, folds) -> dict[str, Any] | None:
+        """Physics refit ``e`` judged on the held-out data against the null model, the nominal
+        parameters re-estimated without any effect (:data:`NULL_MODEL`; its fold changes are there
+        when :meth:`_refit` replayed it): the one-sided held-out test of the change from the null's
+        prediction to the refit's (:func:`stats.heldout_test`), and the fraction of the held-out
+        excess the null leaves that the refit removes. The refit ``adds`` when that test rejects at
+        level ``alpha``, the held-out RMS falls and the fraction is at least ``min_explained`` (the
+        nested comparison's criteria, :meth:`_nested`).
+
+        Returns:
+            ``{"heldout_rms_null", "heldout_rms_after", "explained_fraction", "heldout_p", "adds"}``,
+            or None for an observation-level refit (no nominal parameter moved) or without a null.
+        """
+        if not rf.sim_params or not folds or not any(NULL_MODEL in f.changes for f in folds):
+            return None
+        before, after, prods, _ = heldout.evaluate(folds, {NULL_MODEL: 1.0}, {e: 1.0}, chans)
+        test = self._heldout_test(prods, 0.0)
+        frac = explained_fraction(before, after)
+        s = self.settings
+        return {"heldout_rms_null": float(before), "heldout_rms_after": float(after), "explained_fraction": float(frac),
+                "heldout_p": float(test.p_value),
+                "adds": bool(test.p_value <= s.alpha and after < before and frac >= s.min_explained)}
 
     def _conditional(self, ctx, base, base_scales, e, rf, train, folds) -> tuple[bool, dict, dict[str, float]]:
         """Does candidate ``e`` explain anything beyond the combination ``base_scales`` (in-sample

@@ -21,6 +21,32 @@ from sysid.diagnose.residuals import residual, whiten
 class RefitRefinement:
     """Mixin: replay-based refinement of physics refits (module docstring)."""
 
+    def _training_rows(self, ctx, sig, J_theta, train) -> tuple[np.ndarray, np.ndarray]:
+        """The whitened training rows of the linearised refits: ``(A, b)``, ``b`` the nominal
+        residual, ``A`` the columns ``[sig, J_theta]`` (``sig`` None: the ``J_theta`` columns alone).
+
+        Shapes: ``A`` ``(R, 1 + p)`` or ``(R, p)``, ``b`` ``(R,)``, R the training values of every
+        channel, p the projected nominal parameters (columns per unit of ln theta)."""
+        model = self.model
+        rows_r, rows_J = [], []
+        for ch in model.channels:
+            tr = train[ch]
+            T = int(tr.sum())
+            rows_r.append(residual(model, ch, ctx.prediction[ch])[tr].reshape(-1))
+            Jt = whiten(model, ch, J_theta[ch])[tr]
+            Jt = Jt.reshape(int(np.prod(Jt.shape[:-1])), -1)
+            if sig is None:
+                rows_J.append(Jt)
+            else:
+                Jk = whiten(model, ch, sig[ch])[tr].reshape(-1, 1)
+                rows_J.append(np.concatenate([Jk, Jt], axis=1))
+        return np.concatenate(rows_J), np.concatenate(rows_r)
+
+    def _log_steps(self, theta, steps) -> dict[str, float]:
+        """The nominal parameters moved by log steps ``steps`` (one a projected parameter, clipped to [-1, 1])."""
+        return {n: theta.get(n, self.model.parameter_value(n)) * math.exp(float(np.clip(d, -1.0, 1.0)))
+                for n, d in zip(self.project, steps)}
+
     def _linearised_refit(self, ctx, c, sig, J_theta, train, theta) -> tuple[dict[str, float], Any]:
         """The linearised refit of physics candidate ``c``: least squares of the whitened training
         residual on its secant signature ``sig`` and the ``J_theta`` columns (per unit of ln theta).
@@ -31,27 +57,51 @@ class RefitRefinement:
         Returns:
             ``(parameters of its verifying replay, cands.Refit without prediction)``.
         """
-        model = self.model
-        rows_r, rows_J = [], []
-        for ch in model.channels:
-            tr = train[ch]
-            T = int(tr.sum())
-            rows_r.append(residual(model, ch, ctx.prediction[ch])[tr].reshape(-1))
-            Jk = whiten(model, ch, sig[ch])[tr].reshape(T, -1)
-            Jt = whiten(model, ch, J_theta[ch])[tr].reshape(T * Jk.shape[1], -1)
-            rows_J.append(np.concatenate([Jk.reshape(-1, 1), Jt], axis=1))
-        A, b = np.concatenate(rows_J), np.concatenate(rows_r)
+        A, b = self._training_rows(ctx, sig, J_theta, train)
         sol, *_ = np.linalg.lstsq(A, b, rcond=None)
         beta = float(sol[0])
         if c.one_sided:
             beta = max(beta, 0.0)
         beta = float(np.clip(beta, -c.bound, c.bound))
-        dtheta = {n: theta.get(n, model.parameter_value(n)) * math.exp(float(np.clip(d, -1.0, 1.0)))
-                  for n, d in zip(self.project, sol[1:])}
+        dtheta = self._log_steps(theta, sol[1:])
         params = {**theta, **dtheta, **c.sim_parameters(beta)}
         return params, cands.Refit(np.array([beta]), {c.report_name: beta, **c.settings,
                                                       **{k: float(v) for k, v in dtheta.items()}},
                                    {}, sim_params={**dtheta, **c.sim_parameters(beta)})
+
+    def _reestimate(self, ctx, J_theta, train, theta) -> tuple[dict[str, float], Any] | None:
+        """The nominal parameters re-estimated without any effect: the restricted model of every
+        physics refit (least squares of the whitened training residual on the ``J_theta`` columns
+        alone, log steps clipped to [-1, 1], as in :meth:`_linearised_refit`).
+
+        Each physics refit fits its effect's strength together with these columns, so its change
+        holds the nominal parameters' own move, which the score tests project out; judged against
+        the nominal prediction alone, that move would count as the effect's (a calibration stopped
+        at its replay budget leaves it large). The re-estimate, replayed once, is the null model a
+        refit must improve on (the likelihood-ratio logic of nested models, judged out of sample).
+
+        Returns:
+            ``(parameters of its replay, cands.Refit with beta ``(0,)`` and no prediction)``, or None
+            when no nominal parameter is projected (the nominal prediction is the restricted model).
+        """
+        if not self.project or not any(J_theta[ch].shape[-1] for ch in self.model.channels):
+            return None
+        A, b = self._training_rows(ctx, None, J_theta, train)
+        sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+        dtheta = self._log_steps(theta, sol)
+        return ({**theta, **dtheta},
+                cands.Refit(np.zeros(0), {k: float(v) for k, v in dtheta.items()}, {}, sim_params=dict(dtheta)))
+
+    def _reestimate_chain(self, ctx, params, rf, index: int, notes: list):
+        """The re-estimate's replay (a chain of one replay, :mod:`sysid.diagnose.schedule`); sets
+        ``rf.prediction`` (the nominal prediction when it diverged, noted: no null beyond the nominal)."""
+        rep = yield params, "reestimate"
+        if rep is None:
+            notes.append(((0, 0, index), "the nominal parameters' re-estimate diverged: physics refits are "
+                                          "judged against the nominal prediction alone"))
+            rf.prediction = dict(ctx.prediction)
+        else:
+            rf.prediction = rep[1]
 
     def _refit_chain(self, ctx, c, params, out, train, theta, index: int, notes: list, probe=None):
         """Replays of one physics refit: the verifying replay at the linearised estimate ``params``,

@@ -95,7 +95,12 @@ def _markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
               f"- baseline RMS: `{json.dumps(b['rms'])}`", f"- refit parameters: `{json.dumps(r['params'])}`",
               f"- refit RMS: `{json.dumps(r['rms'])}`",
               f"- held-out RMS ({r.get('heldout_unit', '')}): {r['heldout_rms_before']:.4g} -> "
-              f"{r['heldout_rms_after']:.4g} ({r.get('heldout', '')})", ""]
+              f"{r['heldout_rms_after']:.4g} ({r.get('heldout', '')})"]
+    if r.get("heldout_rms_null") is not None:
+        lines.append(f"- held-out RMS of the nominal parameters re-estimated without any effect (the physics refits' "
+                     f"null model): {r['heldout_rms_null']:.4g}; a physics effect is named only for what it explains "
+                     f"beyond it")
+    lines.append("")
     lines += ["## Residuals", ""] + [f"![{p.stem}]({p.name})" for p in images]
     return "\n".join(lines) + "\n"
 
@@ -133,7 +138,12 @@ def why_lines(doc: Mapping[str, Any]) -> list[str]:
             out.append(f"- **{effect}: accepted.** Refit {json.dumps(d.get('params', {}))}; delta-BIC "
                        f"{d.get('delta_bic', float('nan')):.4g}; held-out RMS {d.get('heldout_rms_before', float('nan')):.4g}"
                        f" -> {d.get('heldout_rms_after', float('nan')):.4g} (p {d.get('heldout_p', float('nan')):.3g}), "
-                       f"{100 * d.get('explained_fraction', float('nan')):.0f} % of the held-out excess explained.")
+                       f"{100 * d.get('explained_fraction', float('nan')):.0f} % of the held-out excess explained"
+                       + (f"; against the nominal parameters re-estimated without it, held-out RMS "
+                          f"{d['beyond_reestimate']['heldout_rms_null']:.4g} -> "
+                          f"{d['beyond_reestimate']['heldout_rms_after']:.4g}, "
+                          f"{100 * d['beyond_reestimate']['explained_fraction']:.0f} % of what they leave"
+                          if d.get("beyond_reestimate") else "") + ".")
             continue
         if best is None:
             out.append(f"- {effect}: not tested (no signature on the tested channels, or its probe diverged; see the notes).")
@@ -175,6 +185,12 @@ def _rejections(d: Mapping[str, Any] | None, alpha: float, bic: float, floor: An
     if d.get("effect_on") is False:
         why.append("its refit leaves the effect off (beta 0): what it explains is the re-estimate of the nominal "
                    "parameters alone")
+    null = d.get("beyond_reestimate")
+    if d.get("effect_on") is not False and null is not None and not null.get("adds", True):
+        why.append(f"against the nominal parameters re-estimated without it (held-out RMS "
+                   f"{null['heldout_rms_null']:.4g} -> {null['heldout_rms_after']:.4g}, p {null['heldout_p']:.3g}) it "
+                   f"explains {100 * null['explained_fraction']:.0f} % of the held-out excess: the nominal "
+                   f"parameters' move carries its fit")
     if d.get("contradicted_on"):
         why.append("its refit moves " + ", ".join(d["contradicted_on"]) + " away from the recording")
     p_h = d.get("heldout_p_holm", d.get("heldout_p"))

@@ -74,8 +74,8 @@ def validate_report(doc: Mapping[str, Any]) -> None:
             v = doc[obj][k]
             if not isinstance(v, Mapping):
                 fail(f"'{obj}.{k}' must be an object")
-    for k in ("heldout_rms_before", "heldout_rms_after"):
-        v = doc["refit"][k]
+    for k in ("heldout_rms_before", "heldout_rms_after", "heldout_rms_null"):
+        v = doc["refit"].get(k)
         if v is not None and not _number(v):
             fail(f"'refit.{k}' must be a number or null, got {v!r}")
     m = doc["mismatch"]

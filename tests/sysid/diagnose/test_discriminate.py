@@ -239,3 +239,56 @@ def test_a_refit_that_leaves_its_effect_off_is_not_named_nor_put_before_the_effe
                     {"candidate.damping": 1e-3})
     out, _ = _decide(data, pred0, {"damping": drag_on})
     assert out["damping"]["accepted"] and out["damping"]["effect_on"]
+
+
+def test_a_refit_whose_fit_rides_on_the_nominal_parameters_move_is_not_named_and_the_effect_is():
+    """A physics refit's strength is fitted with the nominal parameters' log steps; judged against the nominal
+    prediction alone, the parameters' move counts as the effect's. Against the null model (the nominal
+    parameters re-estimated without any effect, replayed once: ``engine.NULL_MODEL`` in the folds) a refit
+    with a tiny strength that only carries that move adds nothing and is not named, while the effect that
+    explains what the re-estimate leaves is named; without the null in the folds both are judged as before."""
+    rng = np.random.default_rng(23)
+    T = 47
+    pred0 = np.zeros((T, 6))
+    move = 3.0 * _wrench_change(T, start=0.0) * SIGMA  # what the re-estimated nominal parameters follow
+    t = np.linspace(0.0, 1.0, T)
+    effect = 1.5 * (np.sin(6.0 * np.pi * t)[:, None] * np.array([1.0, 0.5, 1.0, 0.5, 1.0, 0.5])[None]) * SIGMA
+    data = pred0 + move + effect + _correlated_noise(rng, T, 6, rho=0.3, common=0.2) * SIGMA
+    null = Refit(np.zeros(0), {"gel.youngs_modulus": 4.0e5}, {"wrench": pred0 + move}, {"gel.youngs_modulus": 4.0e5})
+    drag = Refit(np.array([1e-4]), {"candidate.damping": 1e-4, "gel.youngs_modulus": 4.0e5},
+                 {"wrench": pred0 + 1.01 * move}, {"candidate.damping": 1e-4, "gel.youngs_modulus": 4.0e5})
+    gel = Refit(np.array([0.4]), {"candidate.gel_viscoelasticity": 0.4, "gel.youngs_modulus": 4.0e5},
+                {"wrench": pred0 + move + 0.9 * effect},
+                {"candidate.gel_viscoelasticity": 0.4, "gel.youngs_modulus": 4.0e5})
+    refits = {"damping": drag, "gel_viscoelasticity": gel}
+    model, ctx = _wrench_ctx(data, pred0)
+    train = {"wrench": np.arange(T) % 2 == 0}
+
+    def decide(with_null):
+        d = engine.BagDiagnosis.__new__(engine.BagDiagnosis)
+        d.model, d.settings, d.notes, d.tested, d.heldout = model, engine.Settings(), [], ("wrench",), []
+        folds = [engine.heldout.block_fold(model, ctx.prediction, train,
+                                           {**refits, engine.NULL_MODEL: null} if with_null else refits)]
+        d._decisions = d._decide(ctx, refits, train, folds)
+        return d, d._decisions
+
+    d, out = decide(with_null=True)
+    drag_null, gel_null = out["damping"]["beyond_reestimate"], out["gel_viscoelasticity"]["beyond_reestimate"]
+    # against the nominal prediction the drag explains most of the excess; against the null almost nothing
+    assert out["damping"]["explained_fraction"] > 0.5 and out["damping"]["effect_on"]
+    assert not drag_null["adds"] and drag_null["explained_fraction"] < 0.25
+    assert not out["damping"]["accepted"] and not out["damping"]["acceptable_alone"]
+    assert any("damping: its refit explains" in n and "re-estimated without it" in n for n in d.notes)
+    assert any("the nominal parameters' move carries its fit" in why
+               for why in report._rejections(out["damping"], 0.01, 10.0, 0.25))
+    # the effect explains what the null leaves: named
+    assert gel_null["adds"] and gel_null["explained_fraction"] > 0.5 and gel_null["heldout_p"] < 0.01
+    assert out["gel_viscoelasticity"]["accepted"]
+    line = report.why_lines({"extra": {"decisions": out, "library": ["gel_viscoelasticity"], "tests": []}})[0]
+    assert "gel_viscoelasticity: accepted" in line and "against the nominal parameters re-estimated without it" in line
+    # an observation-level refit moves no nominal parameter: no null comparison
+    assert d._beyond_null("latency", Refit(np.array([0.01]), {"latency_s": 0.01}, {"wrench": pred0}), ["wrench"],
+                          [engine.heldout.block_fold(model, ctx.prediction, train, {engine.NULL_MODEL: null})]) is None
+    # without the null in the folds (no nominal parameter projected) the drag is judged against the nominal alone
+    _, out = decide(with_null=False)
+    assert "beyond_reestimate" not in out["damping"] and out["damping"]["acceptable_alone"]
