@@ -65,7 +65,12 @@ unlike the CG's ``p.Ap <= 0``); the elimination goes on with 1 in its place, and
 
 Solve. With ``"dots"`` and ``"panels"``, both passes by the envelope's rows, one warp a copy: forward ``u_i = (b_i - sum_k w_ik u_k) /
 d_i`` a row at a time (the row's sum shared by the warp's lanes, a shuffle sum), then ``v = D u`` and backward ``x_j =
-v_j / d_j``, ``v_k -= w_jk x_j`` over row ``j`` (6.4 ms at B = 1024 against 7.1 by columns). Otherwise forward ``W u =
+v_j / d_j``, ``v_k -= w_jk x_j`` over row ``j`` (6.4 ms at B = 1024 against 7.1 by columns); a synchronised pass a
+row (``substitution="rows"``) or, by default (:data:`SUBSTITUTION`), a vertex's three rows a pass
+(``"vertices"``, :func:`_substitute_vertices`: they share their first column, so the forward pass takes their three
+sums over the earlier positions in one pass over ``u`` and then solves the vertex's 3x3 triangle, the backward pass
+solves the triangle and then updates the earlier positions with the three rows at once: 566 passes a Forming solve
+each way instead of 1,698, the same operations in the same order on one thread). Otherwise forward ``W u =
 b`` by columns (``u_j = b_j / d_j``, then ``b_i -= a_ij u_j`` for the rows of ``j``'s front, one thread a row) and the
 same backward pass. With ``precision="mixed"`` the envelope is stored and factorised in float32 (the dot products
 summed in float64) and each solve is followed by ``refinements`` steps of iterative refinement in float64 (``x +=
@@ -113,6 +118,15 @@ against 3.6 at 256, H100, session 52). ``"blocks"`` (panels of columns,
 :mod:`sim_core.ti_kernels.envelope_blocks`) is slower on the device: gather + elimination 10.6-11.8 ms against 8.15,
 solve 7.9-8.2 against 7.25 (panel 12 at 128 / 256 threads a copy, one Forming Newton matrix at B = 1024, H200;
 docs/gpu_roofline.md, session 58's lead section): opt-in."""
+
+SUBSTITUTIONS = ("rows", "vertices")
+"""How the forward and back substitutions of the left-looking schedules (``"dots"``, ``"panels"``) take a copy's rows
+(:class:`BatchedEnvelope`'s ``substitution``)."""
+
+SUBSTITUTION = "vertices"
+"""The substitution of a :class:`BatchedEnvelope` given none with ``schedule="dots"`` or ``"panels"``: by vertices, a
+vertex's three rows a synchronised pass (:func:`_substitute_vertices`), or by rows (``"rows"``, :func:`_substitute`).
+On the CPU arch (one thread a copy) both are the same operations in the same order."""
 
 SCHEDULE = "dots"
 """The schedule of a :class:`BatchedEnvelope` given none elsewhere than on CUDA (one thread a copy). ``"blocks"``
@@ -528,6 +542,93 @@ def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, to
 
 
 @ti.kernel
+def _substitute_vertices(env: VALUES, off: _I32, first: _I32, todo: _I32, order: _I32, b: _F64, x: _F64, w: _F64,
+                         m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template()):
+    """``x = A^-1 b`` per copy from the factor ``W`` by vertices (module docstring, ``substitution="vertices"``): the
+    forward pass ``W u = b`` a vertex's three rows ``j .. j + 2`` (one first column ``f``) at a time, their three sums
+    ``sum_k w_(j+q)k u_k`` over ``f <= k < j`` in one pass over the copy's ``u`` (the ``lanes``, at most 32: one warp
+    a copy, three shuffle sums), then the vertex's 3x3 triangle (lane 0); ``v = D u``; the backward pass ``W^T x = v``
+    a vertex at a time from the last: the vertex's 3x3 triangle (every lane), then ``v_k -= w_(j+2)k x_(j+2) +
+    w_(j+1)k x_(j+1) + w_jk x_j`` over ``f <= k < j`` (the lanes sharing ``k``), one synchronisation a vertex in each
+    pass instead of one a row. The same operations in the same order as :func:`_substitute` ``by_rows`` with one lane.
+    Arguments as for :func:`_substitute`; ``m`` a multiple of 3, the envelope's first columns equal over a vertex's
+    rows."""
+    ti.loop_config(block_dim=lanes)
+    for t in range(copies * lanes):
+        c = t // lanes
+        lane = t % lanes
+        base = c * size
+        vb = c * m
+        _gather_rhs(order, todo, b, x, w, c, vb, m, lane, lanes)
+        if ti.static(lanes > 1):
+            ti.simt.block.sync()
+        if todo[c] != 0:
+            for v in range(m // 3):
+                j = 3 * v
+                fj = first[j]
+                row0 = base + off[j] - fj
+                row1 = base + off[j + 1] - fj
+                row2 = base + off[j + 2] - fj
+                s0 = 0.0
+                s1 = 0.0
+                s2 = 0.0
+                k = fj + lane
+                while k < j:
+                    u = w[vb + k]
+                    s0 += ti.cast(env[row0 + k], ti.f64) * u
+                    s1 += ti.cast(env[row1 + k], ti.f64) * u
+                    s2 += ti.cast(env[row2 + k], ti.f64) * u
+                    k += lanes
+                s0 = _group_sum(s0, lane, lanes)
+                s1 = _group_sum(s1, lane, lanes)
+                s2 = _group_sum(s2, lane, lanes)
+                if lane == 0:  # (the writer of the vertex's three entries reads them: no other lane does)
+                    u0 = (w[vb + j] - s0) / _pivot(env[row0 + j])
+                    s1 += ti.cast(env[row1 + j], ti.f64) * u0
+                    u1 = (w[vb + j + 1] - s1) / _pivot(env[row1 + j + 1])
+                    s2 += ti.cast(env[row2 + j], ti.f64) * u0
+                    s2 += ti.cast(env[row2 + j + 1], ti.f64) * u1
+                    w[vb + j] = u0
+                    w[vb + j + 1] = u1
+                    w[vb + j + 2] = (w[vb + j + 2] - s2) / _pivot(env[row2 + j + 2])
+                if ti.static(lanes > 1):
+                    ti.simt.block.sync()
+            p = lane
+            while p < m:
+                w[vb + p] = w[vb + p] * _pivot(env[base + off[p] + p - first[p]])
+                p += lanes
+            if ti.static(lanes > 1):
+                ti.simt.block.sync()
+            for vv in range(m // 3):
+                j = m - 3 - 3 * vv
+                fj = first[j]
+                row0 = base + off[j] - fj
+                row1 = base + off[j + 1] - fj
+                row2 = base + off[j + 2] - fj
+                x2 = w[vb + j + 2] / _pivot(env[row2 + j + 2])
+                x1 = (w[vb + j + 1] - ti.cast(env[row2 + j + 1], ti.f64) * x2) / _pivot(env[row1 + j + 1])
+                x0 = ((w[vb + j] - ti.cast(env[row2 + j], ti.f64) * x2) - ti.cast(env[row1 + j], ti.f64) * x1) \
+                    / _pivot(env[row0 + j])
+                if lane == 0:
+                    dof0 = order[vb + j]
+                    dof1 = order[vb + j + 1]
+                    dof2 = order[vb + j + 2]
+                    if dof0 >= 0:
+                        x[dof0] = x0
+                    if dof1 >= 0:
+                        x[dof1] = x1
+                    if dof2 >= 0:
+                        x[dof2] = x2
+                k = fj + lane
+                while k < j:
+                    w[vb + k] = ((w[vb + k] - ti.cast(env[row2 + k], ti.f64) * x2)
+                                 - ti.cast(env[row1 + k], ti.f64) * x1) - ti.cast(env[row0 + k], ti.f64) * x0
+                    k += lanes
+                if ti.static(lanes > 1):
+                    ti.simt.block.sync()
+
+
+@ti.kernel
 def _residual_step(b: _F64, ax: _F64, r: _F64, n: ti.i32):
     """``r = b - A x``."""
     for i in range(n):
@@ -635,10 +736,13 @@ class BatchedEnvelope(BatchedPCG):
             1 with one.
         panel: columns a panel with ``schedule="blocks"``, at least 1; None:
             :data:`~sim_core.ti_kernels.envelope_blocks.PANEL`.
+        substitution: with ``schedule="dots"`` or ``"panels"``, both substitutions ``"rows"`` (a row a synchronised
+            pass) or ``"vertices"`` (a vertex's three rows a pass, their sums in one pass over the solution so far);
+            None: :data:`SUBSTITUTION`. Ignored by the other schedules.
 
     Raises:
         ConfigError: an unknown ``precision``.
-        ValueError: an unknown ``schedule``, a ``group`` that is not a power of two of at most 32 dividing the
+        ValueError: an unknown ``schedule`` or ``substitution``, a ``group`` that is not a power of two of at most 32 dividing the
             lanes, or a ``panel`` under 1.
 
     Attributes:
@@ -661,7 +765,7 @@ class BatchedEnvelope(BatchedPCG):
 
     def __init__(self, segments: "np.ndarray | None" = None, precision: str = "double", refinements: int = 2,
                  lanes: int | None = None, schedule: str | None = None, group: int | None = None,
-                 panel: int | None = None) -> None:
+                 panel: int | None = None, substitution: str | None = None) -> None:
         super().__init__(segments, precision="double")  # the operator (for the refinement's residual) in float64
         from sim_core.ti_kernels.precision import storage_dtype
 
@@ -672,6 +776,10 @@ class BatchedEnvelope(BatchedPCG):
         if schedule not in (None, *SCHEDULES):
             raise ValueError(f"BatchedEnvelope: schedule must be one of {'|'.join(SCHEDULES)}, got {schedule!r}")
         self._schedule = schedule
+        if substitution not in (None, *SUBSTITUTIONS):
+            raise ValueError(f"BatchedEnvelope: substitution must be one of {'|'.join(SUBSTITUTIONS)}, got "
+                             f"{substitution!r}")
+        self._substitution = substitution
         self._group = group
         self.panel = int(panel) if panel is not None else PANEL
         if self.panel < 1:
@@ -697,6 +805,17 @@ class BatchedEnvelope(BatchedPCG):
         if self._schedule is not None:
             return self._schedule
         return CUDA_SCHEDULE if require_backend("BatchedEnvelope") == "cuda" else SCHEDULE
+
+    @property
+    def substitution(self) -> str:
+        """``"rows"`` or ``"vertices"``: how the substitutions of ``"dots"`` and ``"panels"`` take a copy's rows (the
+        class docstring); ``"columns"`` with ``"pairs"`` and ``"rows"``, ``"panels of columns"`` with ``"blocks"``."""
+        schedule = self.schedule
+        if schedule in ("pairs", "rows"):
+            return "columns"
+        if schedule == "blocks":
+            return "panels of columns"
+        return self._substitution if self._substitution is not None else SUBSTITUTION
 
     @property
     def group(self) -> int:
@@ -886,6 +1005,11 @@ class BatchedEnvelope(BatchedPCG):
                               self._copies, self._npanels, lanes, group, self.panel, shared, *shape[:2])
             return
         by_rows = self.schedule in ("dots", "panels")
+        if by_rows and self.substitution == "vertices":
+            _substitute_vertices(a["env"], a["env_off"], a["env_first"], a["env_todo"], a["env_order"], b, x,
+                                 self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
+                                 self._copies, min(self._lane_count(), 32))
+            return
         _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"],
                     a["env_order"], b, x, self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
                     self._copies, min(self._lane_count(), 32) if by_rows else self._lane_count(), by_rows)

@@ -279,3 +279,30 @@ def test_values_on_the_device_go_straight_into_the_envelope_without_the_cgs_set_
     assert not {"inv", "blk", "full_data", "data"} & set(solver._arrays)
     np.testing.assert_allclose(solver.matvec(want), A @ want, rtol=1e-12, atol=1e-12 * np.abs(b).max())
     np.testing.assert_array_equal(data.to_numpy(), upper.data)  # the caller's values left as they were
+
+
+@pytest.mark.parametrize("schedule", ["dots", "panels"])
+def test_the_substitution_by_vertices_is_the_substitution_by_rows_in_another_order_of_passes(ti_cpu, schedule):
+    """``substitution="vertices"`` (a vertex's three rows a pass) solves each copy exactly, float64 and float32 factors
+    alike; on one thread a copy it is the same operations in the same order as ``"rows"`` (a row a pass), so the two
+    solutions agree to the last bits (a rounding's difference allowed for a compiler's fused multiply-adds)."""
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+    blocks = [_grid_block(7, 4, seed, shift) for seed, shift in ((41, 1e-2), (42, 1.0))]
+    A = sp.block_diag(blocks, format="csr")
+    segments = np.repeat(np.arange(2), blocks[0].shape[0])
+    b = np.random.default_rng(11).normal(size=A.shape[0])
+    want = spla.spsolve(A.tocsc(), b)
+    for precision in ("double", "mixed"):
+        got = {}
+        for substitution in ("rows", "vertices"):
+            solver = BatchedEnvelope(segments, precision=precision, refinements=0, schedule=schedule,
+                                     substitution=substitution)
+            assert solver.substitution == substitution
+            solver.factorize(_upper(A))
+            got[substitution] = solver.solve(b)
+        np.testing.assert_allclose(got["vertices"], got["rows"], rtol=1e-13, atol=0)
+        tol = 1e-10 if precision == "double" else 1e-3  # float32 factors alone: float32's accuracy times the condition
+        np.testing.assert_allclose(got["vertices"], want, rtol=0, atol=tol * np.abs(want).max())
+    with pytest.raises(ValueError, match=r"substitution must be one of rows\|vertices, got .columns."):
+        BatchedEnvelope(segments, substitution="columns")
