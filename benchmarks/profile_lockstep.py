@@ -37,7 +37,8 @@ each phase is charged the device work it queued rather than the phase that next 
 bench's: the synchronisations serialise host and device). ``--schedules dots,panels,...`` (one for each entry of
 ``--B``; a size may repeat) sets the envelope Cholesky's schedule on CUDA (``envelope_cholesky.CUDA_SCHEDULE``, and
 ``SCHEDULE`` for the CPU arch) before each entry's batch is built, so that schedules are compared in one process, each
-(size, schedule) accounted once. After each size a memory line: this process's GPU memory (``nvidia-smi``, as
+(size, schedule) accounted once; ``panels:rows``, ``panels:vertices`` set the substitution of ``"dots"`` /
+``"panels"`` too (``envelope_cholesky.SUBSTITUTION``). After each size a memory line: this process's GPU memory (``nvidia-smi``, as
 ``thinshell bench batch``'s ``gpu_mib_per_copy``) and resident host memory after its steps, their growth over the size
 and per copy, and the GPU memory free. ``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's
 compiler in the profiled region).
@@ -78,7 +79,8 @@ def main() -> int:
                     help="Forming: the envelope Cholesky's schedule on CUDA for each entry of --B in turn "
                          "(comma-separated, e.g. dots,panels: envelope_cholesky.CUDA_SCHEDULE, and SCHEDULE for the CPU "
                          "arch, set before the entry's batch is built), so that schedules are compared in one process; with --account a size is "
-                         "accounted once per schedule")
+                         "accounted once per schedule; dots:rows, panels:vertices, ... set the substitution too "
+                         "(envelope_cholesky.SUBSTITUTION)")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
     add_emulation_flag(ap)
@@ -124,7 +126,10 @@ def main() -> int:
         if schedule is not None:
             from sim_core.ti_kernels import envelope_cholesky
 
-            envelope_cholesky.CUDA_SCHEDULE = envelope_cholesky.SCHEDULE = schedule  # (SCHEDULE: on the CPU arch)
+            name, _, substitution = schedule.partition(":")
+            envelope_cholesky.CUDA_SCHEDULE = envelope_cholesky.SCHEDULE = name  # (SCHEDULE: on the CPU arch)
+            if substitution:
+                envelope_cholesky.SUBSTITUTION = substitution
             print(f"B={B}: the envelope's schedule on CUDA {schedule}", flush=True)
         label = str(B) if schedule is None else f"{B} {schedule}"
         sc.SolverConfig = config
@@ -140,8 +145,9 @@ def main() -> int:
         _print_parts(f"B={B} build", timers, time.perf_counter() - t0)
         if schedule is not None:
             solver = run.batch.lockstep.solver if run.batch.lockstep is not None else None
-            print(f"B={label}: the batch's envelope schedule "
-                  f"{getattr(getattr(solver, 'pcg', None), 'schedule', None)}", flush=True)
+            pcg = getattr(solver, 'pcg', None)
+            print(f"B={label}: the batch's envelope schedule {getattr(pcg, 'schedule', None)}, substitution "
+                  f"{getattr(pcg, 'substitution', None)}", flush=True)
         if args.task:
             _profile_population(run, B, args, timers, cg_iterations)
         else:
@@ -539,13 +545,22 @@ def _sizes(text) -> list[int]:
 
 def _schedules(text, count: int, ap) -> list:
     """The envelope schedules of ``--schedules`` (``text``, comma-separated, one for each of the ``count`` entries of
-    ``--B``), or ``count`` Nones without it; ``ap.error`` on a count that differs or an unknown name."""
+    ``--B``; ``dots`` and ``panels`` may name a substitution after a colon, ``panels:rows``), or ``count`` Nones
+    without it; ``ap.error`` on a count that differs or an unknown name."""
     if text is None:
         return [None] * count
     names = [name.strip() for name in str(text).split(",")]
     known = ("pairs", "rows", "dots", "panels", "blocks")
-    if len(names) != count or any(name not in known for name in names):
-        ap.error(f"--schedules needs one of {'|'.join(known)} for each of the {count} entries of --B; got {text!r}")
+    substitutions = ("", "rows", "vertices", "vertices-ahead")
+
+    def _known(name):
+        schedule, colon, substitution = name.partition(":")
+        return schedule in known and substitution in substitutions and (not colon or substitution and schedule in (
+            "dots", "panels"))
+
+    if len(names) != count or not all(_known(name) for name in names):
+        ap.error(f"--schedules needs one of {'|'.join(known)} (dots and panels with :rows, :vertices or :vertices-ahead, optional) for "
+                 f"each of the {count} entries of --B; got {text!r}")
     return names
 
 

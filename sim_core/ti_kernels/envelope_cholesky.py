@@ -119,13 +119,14 @@ against 3.6 at 256, H100, session 52). ``"blocks"`` (panels of columns,
 solve 7.9-8.2 against 7.25 (panel 12 at 128 / 256 threads a copy, one Forming Newton matrix at B = 1024, H200;
 docs/gpu_roofline.md, session 58's lead section): opt-in."""
 
-SUBSTITUTIONS = ("rows", "vertices")
+SUBSTITUTIONS = ("rows", "vertices", "vertices-ahead")
 """How the forward and back substitutions of the left-looking schedules (``"dots"``, ``"panels"``) take a copy's rows
 (:class:`BatchedEnvelope`'s ``substitution``)."""
 
 SUBSTITUTION = "vertices"
 """The substitution of a :class:`BatchedEnvelope` given none with ``schedule="dots"`` or ``"panels"``: by vertices, a
-vertex's three rows a synchronised pass (:func:`_substitute_vertices`), or by rows (``"rows"``, :func:`_substitute`).
+vertex's three rows a synchronised pass (:func:`_substitute_vertices`; ``"vertices-ahead"``: each pass's reads of the
+factor issued one pass early), or by rows (``"rows"``, :func:`_substitute`).
 On the CPU arch (one thread a copy) both are the same operations in the same order."""
 
 SCHEDULE = "dots"
@@ -541,74 +542,111 @@ def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, to
             _back_substitute(env, off, first, order, x, w, base, vb, m, lane, lanes)
 
 
+@ti.func
+def _vertex_block(env: ti.template(), off: ti.template(), first: ti.template(), base, j, lane):
+    """What a substitution's pass over vertex rows ``j .. j + 2`` (one first column ``f``) reads of the factor and does
+    not depend on the solution: ``(f, row0, row1, row2, e0, e1, e2, a00, a10, a11, a20, a21, a22)``, the rows' column
+    0 in a copy's envelope (from ``base``), their entries at this lane's first column ``f + lane`` (0 at or past
+    ``j``), and the vertex's 3x3 triangle ``a_pq = w_(j+p)(j+q)``, float64."""
+    fj = first[j]
+    row0 = base + off[j] - fj
+    row1 = base + off[j + 1] - fj
+    row2 = base + off[j + 2] - fj
+    k = fj + lane
+    e0 = 0.0
+    e1 = 0.0
+    e2 = 0.0
+    if k < j:
+        e0 = ti.cast(env[row0 + k], ti.f64)
+        e1 = ti.cast(env[row1 + k], ti.f64)
+        e2 = ti.cast(env[row2 + k], ti.f64)
+    return (fj, row0, row1, row2, e0, e1, e2, ti.cast(env[row0 + j], ti.f64), ti.cast(env[row1 + j], ti.f64),
+            ti.cast(env[row1 + j + 1], ti.f64), ti.cast(env[row2 + j], ti.f64), ti.cast(env[row2 + j + 1], ti.f64),
+            ti.cast(env[row2 + j + 2], ti.f64))
+
+
 @ti.kernel
 def _substitute_vertices(env: VALUES, off: _I32, first: _I32, todo: _I32, order: _I32, b: _F64, x: _F64, w: _F64,
-                         m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template()):
+                         m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template(), ahead: ti.template()):
     """``x = A^-1 b`` per copy from the factor ``W`` by vertices (module docstring, ``substitution="vertices"``): the
     forward pass ``W u = b`` a vertex's three rows ``j .. j + 2`` (one first column ``f``) at a time, their three sums
     ``sum_k w_(j+q)k u_k`` over ``f <= k < j`` in one pass over the copy's ``u`` (the ``lanes``, at most 32: one warp
     a copy, three shuffle sums), then the vertex's 3x3 triangle (lane 0); ``v = D u``; the backward pass ``W^T x = v``
     a vertex at a time from the last: the vertex's 3x3 triangle (every lane), then ``v_k -= w_(j+2)k x_(j+2) +
-    w_(j+1)k x_(j+1) + w_jk x_j`` over ``f <= k < j`` (the lanes sharing ``k``), one synchronisation a vertex in each
-    pass instead of one a row. The same operations in the same order as :func:`_substitute` ``by_rows`` with one lane.
-    Arguments as for :func:`_substitute`; ``m`` a multiple of 3, the envelope's first columns equal over a vertex's
-    rows."""
+    w_(j+1)k x_(j+1) + w_jk x_j`` over ``f <= k < j`` (the lanes sharing ``k``); one synchronisation a vertex in each
+    pass instead of one a row. A pass first issues its reads of the factor that do not depend on the solution
+    (:func:`_vertex_block`: the triangle, each lane's first entries of the three rows), so that they are in flight
+    together with the solution's; ``ahead``: the next vertex's, one pass early, before this pass's synchronisation.
+    The same operations in the same order as :func:`_substitute` ``by_rows`` with one lane. Arguments as for
+    :func:`_substitute`; ``m`` a multiple of 3, the envelope's first columns equal over a vertex's rows."""
     ti.loop_config(block_dim=lanes)
     for t in range(copies * lanes):
         c = t // lanes
         lane = t % lanes
         base = c * size
         vb = c * m
+        nv = m // 3
         _gather_rhs(order, todo, b, x, w, c, vb, m, lane, lanes)
         if ti.static(lanes > 1):
             ti.simt.block.sync()
-        if todo[c] != 0:
-            for v in range(m // 3):
+        if todo[c] != 0 and nv > 0:
+            fj, row0, row1, row2, e0, e1, e2, a00, a10, a11, a20, a21, a22 = _vertex_block(env, off, first, base, 0,
+                                                                                           lane)
+            for v in range(nv):
                 j = 3 * v
-                fj = first[j]
-                row0 = base + off[j] - fj
-                row1 = base + off[j + 1] - fj
-                row2 = base + off[j + 2] - fj
+                if ti.static(not ahead):
+                    fj, row0, row1, row2, e0, e1, e2, a00, a10, a11, a20, a21, a22 = _vertex_block(
+                        env, off, first, base, j, lane)
+                nxt = _vertex_block(env, off, first, base, ti.min(j + 3, m - 3), lane) if ti.static(ahead) else 0
                 s0 = 0.0
                 s1 = 0.0
                 s2 = 0.0
                 k = fj + lane
-                while k < j:
+                if k < j:
                     u = w[vb + k]
-                    s0 += ti.cast(env[row0 + k], ti.f64) * u
-                    s1 += ti.cast(env[row1 + k], ti.f64) * u
-                    s2 += ti.cast(env[row2 + k], ti.f64) * u
+                    s0 = e0 * u
+                    s1 = e1 * u
+                    s2 = e2 * u
                     k += lanes
+                    while k < j:
+                        u = w[vb + k]
+                        s0 += ti.cast(env[row0 + k], ti.f64) * u
+                        s1 += ti.cast(env[row1 + k], ti.f64) * u
+                        s2 += ti.cast(env[row2 + k], ti.f64) * u
+                        k += lanes
                 s0 = _group_sum(s0, lane, lanes)
                 s1 = _group_sum(s1, lane, lanes)
                 s2 = _group_sum(s2, lane, lanes)
                 if lane == 0:  # (the writer of the vertex's three entries reads them: no other lane does)
-                    u0 = (w[vb + j] - s0) / _pivot(env[row0 + j])
-                    s1 += ti.cast(env[row1 + j], ti.f64) * u0
-                    u1 = (w[vb + j + 1] - s1) / _pivot(env[row1 + j + 1])
-                    s2 += ti.cast(env[row2 + j], ti.f64) * u0
-                    s2 += ti.cast(env[row2 + j + 1], ti.f64) * u1
+                    u0 = (w[vb + j] - s0) / _pivot(a00)
+                    s1 += a10 * u0
+                    u1 = (w[vb + j + 1] - s1) / _pivot(a11)
+                    s2 += a20 * u0
+                    s2 += a21 * u1
                     w[vb + j] = u0
                     w[vb + j + 1] = u1
-                    w[vb + j + 2] = (w[vb + j + 2] - s2) / _pivot(env[row2 + j + 2])
+                    w[vb + j + 2] = (w[vb + j + 2] - s2) / _pivot(a22)
                 if ti.static(lanes > 1):
                     ti.simt.block.sync()
+                if ti.static(ahead):
+                    fj, row0, row1, row2, e0, e1, e2, a00, a10, a11, a20, a21, a22 = nxt
             p = lane
             while p < m:
                 w[vb + p] = w[vb + p] * _pivot(env[base + off[p] + p - first[p]])
                 p += lanes
             if ti.static(lanes > 1):
                 ti.simt.block.sync()
-            for vv in range(m // 3):
+            fj, row0, row1, row2, e0, e1, e2, a00, a10, a11, a20, a21, a22 = _vertex_block(env, off, first, base,
+                                                                                           m - 3, lane)
+            for vv in range(nv):
                 j = m - 3 - 3 * vv
-                fj = first[j]
-                row0 = base + off[j] - fj
-                row1 = base + off[j + 1] - fj
-                row2 = base + off[j + 2] - fj
-                x2 = w[vb + j + 2] / _pivot(env[row2 + j + 2])
-                x1 = (w[vb + j + 1] - ti.cast(env[row2 + j + 1], ti.f64) * x2) / _pivot(env[row1 + j + 1])
-                x0 = ((w[vb + j] - ti.cast(env[row2 + j], ti.f64) * x2) - ti.cast(env[row1 + j], ti.f64) * x1) \
-                    / _pivot(env[row0 + j])
+                if ti.static(not ahead):
+                    fj, row0, row1, row2, e0, e1, e2, a00, a10, a11, a20, a21, a22 = _vertex_block(
+                        env, off, first, base, j, lane)
+                nxt = _vertex_block(env, off, first, base, ti.max(j - 3, 0), lane) if ti.static(ahead) else 0
+                x2 = w[vb + j + 2] / _pivot(a22)
+                x1 = (w[vb + j + 1] - a21 * x2) / _pivot(a11)
+                x0 = ((w[vb + j] - a20 * x2) - a10 * x1) / _pivot(a00)
                 if lane == 0:
                     dof0 = order[vb + j]
                     dof1 = order[vb + j + 1]
@@ -620,12 +658,17 @@ def _substitute_vertices(env: VALUES, off: _I32, first: _I32, todo: _I32, order:
                     if dof2 >= 0:
                         x[dof2] = x2
                 k = fj + lane
-                while k < j:
-                    w[vb + k] = ((w[vb + k] - ti.cast(env[row2 + k], ti.f64) * x2)
-                                 - ti.cast(env[row1 + k], ti.f64) * x1) - ti.cast(env[row0 + k], ti.f64) * x0
+                if k < j:
+                    w[vb + k] = ((w[vb + k] - e2 * x2) - e1 * x1) - e0 * x0
                     k += lanes
+                    while k < j:
+                        w[vb + k] = ((w[vb + k] - ti.cast(env[row2 + k], ti.f64) * x2)
+                                     - ti.cast(env[row1 + k], ti.f64) * x1) - ti.cast(env[row0 + k], ti.f64) * x0
+                        k += lanes
                 if ti.static(lanes > 1):
                     ti.simt.block.sync()
+                if ti.static(ahead):
+                    fj, row0, row1, row2, e0, e1, e2, a00, a10, a11, a20, a21, a22 = nxt
 
 
 @ti.kernel
@@ -737,8 +780,8 @@ class BatchedEnvelope(BatchedPCG):
         panel: columns a panel with ``schedule="blocks"``, at least 1; None:
             :data:`~sim_core.ti_kernels.envelope_blocks.PANEL`.
         substitution: with ``schedule="dots"`` or ``"panels"``, both substitutions ``"rows"`` (a row a synchronised
-            pass) or ``"vertices"`` (a vertex's three rows a pass, their sums in one pass over the solution so far);
-            None: :data:`SUBSTITUTION`. Ignored by the other schedules.
+            pass) or ``"vertices"`` (a vertex's three rows a pass, their sums in one pass over the solution so far;
+            ``"vertices-ahead"``: each pass's reads of the factor issued one pass early); None: :data:`SUBSTITUTION`. Ignored by the other schedules.
 
     Raises:
         ConfigError: an unknown ``precision``.
@@ -808,7 +851,7 @@ class BatchedEnvelope(BatchedPCG):
 
     @property
     def substitution(self) -> str:
-        """``"rows"`` or ``"vertices"``: how the substitutions of ``"dots"`` and ``"panels"`` take a copy's rows (the
+        """``"rows"``, ``"vertices"`` or ``"vertices-ahead"``: how the substitutions of ``"dots"`` and ``"panels"`` take a copy's rows (the
         class docstring); ``"columns"`` with ``"pairs"`` and ``"rows"``, ``"panels of columns"`` with ``"blocks"``."""
         schedule = self.schedule
         if schedule in ("pairs", "rows"):
@@ -1005,10 +1048,10 @@ class BatchedEnvelope(BatchedPCG):
                               self._copies, self._npanels, lanes, group, self.panel, shared, *shape[:2])
             return
         by_rows = self.schedule in ("dots", "panels")
-        if by_rows and self.substitution == "vertices":
+        if by_rows and self.substitution != "rows":
             _substitute_vertices(a["env"], a["env_off"], a["env_first"], a["env_todo"], a["env_order"], b, x,
                                  self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
-                                 self._copies, min(self._lane_count(), 32))
+                                 self._copies, min(self._lane_count(), 32), self.substitution == "vertices-ahead")
             return
         _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"],
                     a["env_order"], b, x, self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,

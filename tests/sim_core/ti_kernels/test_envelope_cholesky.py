@@ -295,14 +295,15 @@ def test_the_substitution_by_vertices_is_the_substitution_by_rows_in_another_ord
     want = spla.spsolve(A.tocsc(), b)
     for precision in ("double", "mixed"):
         got = {}
-        for substitution in ("rows", "vertices"):
+        for substitution in ("rows", "vertices", "vertices-ahead"):
             solver = BatchedEnvelope(segments, precision=precision, refinements=0, schedule=schedule,
                                      substitution=substitution)
             assert solver.substitution == substitution
             solver.factorize(_upper(A))
             got[substitution] = solver.solve(b)
-        np.testing.assert_allclose(got["vertices"], got["rows"], rtol=1e-13, atol=0)
+        for name in ("vertices", "vertices-ahead"):
+            np.testing.assert_allclose(got[name], got["rows"], rtol=1e-13, atol=0)
         tol = 1e-10 if precision == "double" else 1e-3  # float32 factors alone: float32's accuracy times the condition
         np.testing.assert_allclose(got["vertices"], want, rtol=0, atol=tol * np.abs(want).max())
-    with pytest.raises(ValueError, match=r"substitution must be one of rows\|vertices, got .columns."):
+    with pytest.raises(ValueError, match=r"substitution must be one of rows\|vertices\|vertices-ahead, got .columns."):
         BatchedEnvelope(segments, substitution="columns")
