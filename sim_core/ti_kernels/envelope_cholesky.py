@@ -66,11 +66,13 @@ unlike the CG's ``p.Ap <= 0``); the elimination goes on with 1 in its place, and
 Solve. With ``"dots"`` and ``"panels"``, both passes by the envelope's rows, one warp a copy: forward ``u_i = (b_i - sum_k w_ik u_k) /
 d_i`` a row at a time (the row's sum shared by the warp's lanes, a shuffle sum), then ``v = D u`` and backward ``x_j =
 v_j / d_j``, ``v_k -= w_jk x_j`` over row ``j`` (6.4 ms at B = 1024 against 7.1 by columns); a synchronised pass a
-row (``substitution="rows"``) or, by default (:data:`SUBSTITUTION`), a vertex's three rows a pass
-(``"vertices"``, :func:`_substitute_vertices`: they share their first column, so the forward pass takes their three
-sums over the earlier positions in one pass over ``u`` and then solves the vertex's 3x3 triangle, the backward pass
-solves the triangle and then updates the earlier positions with the three rows at once: 566 passes a Forming solve
-each way instead of 1,698, the same operations in the same order on one thread). Otherwise forward ``W u =
+row (``substitution="rows"``) or a vertex's three rows a pass (``"vertices"``, :func:`_substitute_vertices`: they
+share their first column, so the forward pass takes their three sums over the earlier positions in one pass over
+``u`` and then solves the vertex's 3x3 triangle, the backward pass solves the triangle and then updates the earlier
+positions with the three rows at once: 566 passes a Forming solve each way instead of 1,698, the same operations in
+the same order on one thread); by default (:data:`SUBSTITUTION`) ``"vertices-ahead"``, which issues a pass's reads of
+the factor (the vertex's triangle, each lane's first entries of its rows) one pass early, so that a pass waits on the
+solution's reads only: a Forming step's substitution kernels 27.8 -> 15.3 ms at B = 1024 on the H200. Otherwise forward ``W u =
 b`` by columns (``u_j = b_j / d_j``, then ``b_i -= a_ij u_j`` for the rows of ``j``'s front, one thread a row) and the
 same backward pass. With ``precision="mixed"`` the envelope is stored and factorised in float32 (the dot products
 summed in float64) and each solve is followed by ``refinements`` steps of iterative refinement in float64 (``x +=
@@ -123,11 +125,15 @@ SUBSTITUTIONS = ("rows", "vertices", "vertices-ahead")
 """How the forward and back substitutions of the left-looking schedules (``"dots"``, ``"panels"``) take a copy's rows
 (:class:`BatchedEnvelope`'s ``substitution``)."""
 
-SUBSTITUTION = "vertices"
+SUBSTITUTION = "vertices-ahead"
 """The substitution of a :class:`BatchedEnvelope` given none with ``schedule="dots"`` or ``"panels"``: by vertices, a
-vertex's three rows a synchronised pass (:func:`_substitute_vertices`; ``"vertices-ahead"``: each pass's reads of the
-factor issued one pass early), or by rows (``"rows"``, :func:`_substitute`).
-On the CPU arch (one thread a copy) both are the same operations in the same order."""
+vertex's three rows a synchronised pass, each pass's reads of the factor issued one pass early
+(:func:`_substitute_vertices`); ``"vertices"``: issued at the pass's start; ``"rows"``: a row a pass
+(:func:`_substitute`). On CUDA (H200, B = 1024, one process, session 63) a lockstep Forming step's substitution
+kernels take 15.3 ms against ``"rows"``' 27.8 (each phase's device work synchronised; the same Newton iterations and
+factorisations) and the steady rate rises 2,379 -> 2,729 scene-steps/s (B = 256: 1,557 -> 1,818); a solve of B =
+1024 copies of a 561-vertex grid matrix 1.62 ms (``"vertices"`` 2.14, ``"rows"`` 3.79; docs/gpu_roofline.md). On the
+CPU arch (one thread a copy) all three are the same operations in the same order, the same bits."""
 
 SCHEDULE = "dots"
 """The schedule of a :class:`BatchedEnvelope` given none elsewhere than on CUDA (one thread a copy). ``"blocks"``
