@@ -77,9 +77,10 @@ b`` by columns (``u_j = b_j / d_j``, then ``b_i -= a_ij u_j`` for the rows of ``
 same backward pass. With ``precision="mixed"`` the envelope is stored and factorised in float32 (the dot products
 summed in float64) and each solve is followed by ``refinements`` steps of iterative refinement in float64 (``x +=
 A^-1 (b - A x)``, the residual by the CG's float64 operator product; Golub & Van Loan, Sec. 3.5.3): one "iteration" a
-solve and one a refinement (:attr:`BatchedPCG.iterations`). CI runs both schedules on the CPU (one thread a copy);
-the lanes' sharing (the groups' shuffle sums, the synchronisations) runs on CUDA only, checked there by the
-benchmark's residual against the float64 operator (1.2e-13).
+solve and one a refinement (:attr:`BatchedPCG.iterations`). CI runs both schedules and every substitution on the CPU
+(one thread a copy); the lanes' sharing (the groups' shuffle sums, the synchronisations, the substitutions' early
+reads) runs on CUDA only, checked there by the benchmark's residual against the float64 operator (1.2e-13) and, for
+the substitutions, against SciPy on 1,024 copies (5.5e-15, session 63).
 
 Storage a copy: the envelope, float64 or float32 ``(E,)`` (``E`` the envelope's entries), the solve's vector float64
 ``(m,)``, with ``"dots"`` the pivots' inverses float64 ``(m,)`` (``"panels"``: a ring of them and the vertex block's
@@ -776,8 +777,8 @@ class BatchedEnvelope(BatchedPCG):
             after another in a copy's thread: :mod:`sim_core.ti_kernels.envelope_blocks`).
         schedule: how a copy's threads share its factorisation: right-looking, a column's update ``"pairs"`` (entry
             by entry) or ``"rows"`` (a thread a row); or left-looking ``"dots"`` (a column's entries as dot products of
-            two rows, ``group`` lanes each, and both substitutions by rows, a warp a copy) or ``"panels"`` (a vertex's three
-            columns at once, the same substitutions) or ``"blocks"`` (panels of ``panel`` columns, three passes a panel,
+            two rows, ``group`` lanes each, and both substitutions by rows or vertices, ``substitution``, a warp a copy) or
+            ``"panels"`` (a vertex's three columns at once, the same substitutions) or ``"blocks"`` (panels of ``panel`` columns, three passes a panel,
             the substitutions by panels too: :mod:`sim_core.ti_kernels.envelope_blocks`); None: :data:`CUDA_SCHEDULE`
             on CUDA, :data:`SCHEDULE` elsewhere.
         group: lanes of one dot product with ``schedule="dots"``, ``"panels"`` or ``"blocks"`` (on CUDA), a power of two
