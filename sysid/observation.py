@@ -347,7 +347,8 @@ class ObservationModel:
         ev = self.evidence
         t_pose = ev.t_ns["pose"]
         t0 = int(t_pose[0])
-        t_end = max(int(ev.t_ns[ch][-1]) for ch in self.channels)
+        # every channel predicted, fitted or not (the calibration reads them all), lies within the replay
+        t_end = max(int(ev.t_ns[ch][-1]) for ch in PREDICTABLE_CHANNELS if ch in ev.channels_present)
         dt_ns = int(round(self.dt * 1e9))
         steps = max(1, int(math.ceil((t_end - t0) / dt_ns)))
         self.step_times_ns = t0 + dt_ns * np.arange(steps + 1, dtype=np.int64)
