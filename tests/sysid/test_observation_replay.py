@@ -34,7 +34,7 @@ def test_replays_retry_a_failed_step_in_substeps_and_count_the_steps(press_model
 def test_a_replay_fitted_on_some_channels_spans_every_channel_the_recording_has():
     """nominal_s101's wrench (200 Hz) ends after its markers and sheet points: a model that fits only those still
     replays to the wrench's last sample, which its calibration predicts, as the model of every channel does
-    (``thinshell sysid BAG --channels markers_xyz,sheet_points`` once failed there, naming the wrench's samples)."""
+    (``thinshell sysid BAG --channels markers_xyz,sheet_points``)."""
     from sysid.replay_trace import PREDICTABLE_CHANNELS
     from tests.sysid.conftest import reference_bag
 
