@@ -663,10 +663,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             of them with the same result. False:
             the scaled sigma only (``thinshell sysid``: True).
         hold_unidentified: hold a parameter that the data do not identify at its start value: at every
-            accepted point (the start first) the parameters the data do not identify there by the rule their report
-            is judged by: the robust 2-sigma interval reaches a bound of the parameter's ``prior`` range, or zero
-            for a parameter without one (:func:`sysid.fit_region.unidentified_coordinates`), judged with the robust
-            covariance of method ``robust``
+            accepted point (the start first) the parameters whose robust 2-sigma interval there reaches zero
+            (:func:`sysid.covariance.not_identified`, judged with the robust covariance of method ``robust``
             from that point's Jacobian and the residual its Gauss-Newton step would leave, ``r + J delta``, no
             replay: at a start far off the residual itself is mostly the parameters' own error and would inflate
             the sandwich; at an optimum the two agree), and those whose column is zero where ``J^T J``
@@ -801,7 +799,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                         if robust is not None and sigma_u is not None:
                             r_lin = r + J[:, seen] @ gauss_newton_step(J[:, seen], r)[0]
                             sigma_gate = robust_sigma(model, J, r_lin, seen, robust, seed)
-                        held = ~seen if sigma_gate is None else ~seen | unidentified_coordinates(specs, u, sigma_gate, prior)
+                        held = ~seen if sigma_gate is None else ~seen | unidentified_coordinates(specs, u, sigma_gate)
                         jac_at["held"] = tuple(n for n, h in zip(names, held) if h)
                         if held.all():
                             raise _AllHeld()

@@ -18,7 +18,6 @@ import numpy as np
 from sim_core.errors import CalibrationError
 from sim_core.parameter_coordinates import ParameterSpec
 from sysid.covariance import model_robust_covariance, not_identified
-from sysid.identifiability import linearised, prior_of
 
 if TYPE_CHECKING:
     from sysid.observation import ObservationModel
@@ -69,25 +68,15 @@ def robust_sigma(model: "ObservationModel", J: np.ndarray, r: np.ndarray, seen: 
     return sigma
 
 
-def unidentified_coordinates(specs: Sequence[ParameterSpec], u: np.ndarray, sigma_u: np.ndarray,
-                             prior: Mapping[str, tuple[float, float]] | None = None) -> np.ndarray:
-    """Which coordinates the data do not identify at ``u`` ``(p,)`` given their 1-sigma ``sigma_u`` ``(p,)`` in the
-    search coordinates (first order for a log parameter).
-
-    A parameter with a prior range (``prior[name]``, parameter units: :func:`sysid.identifiability.prior_ranges`) is
-    judged by the rule its report is judged by (:func:`sysid.identifiability.linearised`): its 2-sigma interval
-    reaches a bound of the prior range on either side, or its value lies outside it. Any other log parameter: its
-    2-sigma interval reaches zero (:func:`sysid.covariance.not_identified`, the rule on its search range).
+def unidentified_coordinates(specs: Sequence[ParameterSpec], u: np.ndarray, sigma_u: np.ndarray) -> np.ndarray:
+    """Which coordinates :func:`sysid.covariance.not_identified` judges not identified at ``u`` ``(p,)`` given their
+    1-sigma ``sigma_u`` ``(p,)`` in the search coordinates (a log parameter: ``sigma_u >= 0.5``, first order).
 
     Returns:
         ``(p,)`` bool, in ``specs`` order.
     """
     values = {s.name: s.to_value(float(ui)) for s, ui in zip(specs, np.asarray(u, dtype=float))}
-    sigma = sigma_of(specs, values, np.diag(np.asarray(sigma_u, dtype=float) ** 2))
-    prior = prior or {}
-    out = set(not_identified([s for s in specs if s.name not in prior], values, sigma))
-    out.update(s.name for s in specs if s.name in prior
-               and not linearised(s, values[s.name], sigma[s.name], prior_of(s, prior)).identified)
+    out = not_identified(specs, values, sigma_of(specs, values, np.diag(np.asarray(sigma_u, dtype=float) ** 2)))
     return np.array([s.name in out for s in specs], dtype=bool)
 
 

@@ -157,34 +157,6 @@ def test_a_positive_parameter_whose_robust_interval_reaches_zero_is_held_by_the_
     assert not_identified(specs, values, None) == ()
 
 
-def test_the_search_holds_a_parameter_by_its_reports_rule_where_it_has_a_prior_range() -> None:
-    """With a prior range (the data sheet's, sysid.identifiability.prior_ranges) the search holds a parameter whose
-    2-sigma interval at the point reaches a bound of that range on either side, or whose value lies outside it:
-    the rule its report applies (sysid.identifiability.linearised), so the fit does not walk a parameter it will
-    report not identified to where the report's interval no longer holds it. Without one, the search range's rule:
-    the interval reaches zero."""
-    from sim_core.parameter_coordinates import ParameterSpec
-    from sysid.fit_region import unidentified_coordinates
-    from sysid.identifiability import linearised
-
-    specs = [ParameterSpec("bend", 0.0074, True, 0.0074e-3, 7.4), ParameterSpec("mod", 3e5, True, 300.0, 3e8)]
-    prior = {"bend": (0.00185, 0.0296), "mod": (1e5, 9e5)}
-    u = np.array([s.to_u(v) for s, v in zip(specs, (0.0074, 3e5))])
-    # bending's 1-sigma 0.30 / 0.40 in log units is 0.00222 / 0.00296 in value units (first order, as reported):
-    # 0.0074 - 2 sigma = 0.00296 stays above the prior's 0.00185; 0.00148 reaches it
-    for s_bend, held in ((0.30, False), (0.40, True)):
-        got = unidentified_coordinates(specs, u, np.array([s_bend, 0.05]), prior)
-        lin = linearised(specs[0], 0.0074, 0.0074 * s_bend, prior["bend"])
-        assert got.tolist() == [held, False] and lin.identified is not held, (s_bend, lin)
-        # the search range's rule alone (no prior) holds neither: 0.0074 (1 - 2 x 0.40) > 0
-        assert unidentified_coordinates(specs, u, np.array([s_bend, 0.05])).tolist() == [False, False]
-    # a value outside its prior range is held wherever its sigma
-    far = np.array([specs[0].to_u(0.04), u[1]])
-    assert unidentified_coordinates(specs, far, np.array([0.01, 0.05]), prior).tolist() == [True, False]
-    # the modulus: 2 x 0.05 relative stays inside [1e5, 9e5]; 2 x 0.4 x 3e5 = 2.4e5 reaches 1e5 below
-    assert unidentified_coordinates(specs, u, np.array([0.01, 0.4]), prior).tolist() == [False, True]
-
-
 def test_the_reported_robust_covariance_is_no_better_than_the_white_noise_allows() -> None:
     """A sandwich below the Gauss-Newton covariance (scores that cancel: few bins, a long window) is floored at it,
     combination by combination; one above it is kept."""
