@@ -433,7 +433,7 @@ class FitResult:
         profile_runs: replays of the parameters' profiles (``profile_replays``; also in ``sim_runs``).
         robust: the robust covariance of the coordinates (:class:`sysid.covariance.RobustCovariance`:
             method, ``(p, p)`` matrix, lag window), or None (``robust=None``, or no Jacobian).
-        held: the parameters :func:`fit` ``hold_unidentified`` held at their start at the last accepted point
+        held: the parameters :func:`fit` ``hold_unidentified`` held (no step taken along them) at the last accepted point
             (each has a line in ``warnings``).
     """
 
@@ -562,6 +562,14 @@ def _global_phase(problem: FitProblem, u0: np.ndarray, method: str, seed: int, m
 
 
 # ====================================================================================== fit
+def _held_where(value: float, start: float) -> str:
+    """Where a held parameter stayed, in the words of its warning: its start, or the point an earlier step took it to
+    while the data still identified it there."""
+    if value == start:
+        return f"its start value {value:.4g}"
+    return f"{value:.4g}, where an earlier step took it from its start {start:.4g} while the data still identified it"
+
+
 def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         initial: Mapping[str, float] | None = None, jacobian: str | JacobianProvider = "auto",
         global_method: str | None = None, global_evals: int | None = None, global_sigma: float = 1.0,
@@ -678,7 +686,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             and on nominal_s101 the bending stiffness went x13.8 in the first step, from 0.0074 to 0.103
             (session 51), where the fit then stopped. A held parameter is re-judged at every accepted point
             and released once the data identify it; those held at the last one are :attr:`FitResult.held`,
-            each with a warning, and are reported at their start with their interval. False: every parameter
+            each with a warning, and are reported where they were held (their start, unless an earlier step moved them) with their interval. False: every parameter
             is stepped (``thinshell sysid``: True).
         first_step: width of the local phase's first trust region in every search coordinate (log units for a
             positive parameter; :func:`first_region_scale` sets ``least_squares``' ``x_scale`` for it). None: the
@@ -919,7 +927,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                                                       {n: A[:, k] for k, n in enumerate(nuisance)})
             sigma_robust = sigma_of(specs, values, robust_cov.covariance_u)
     held = tuple(jac_at.get("held", ()))
-    notes.extend(f"{n} was held at its start value {values[n]:.4g} by the fit: at the last accepted point its robust "
+    notes.extend(f"{n} was held at {_held_where(values[n], start[n])} by the fit: at the last accepted point its robust "
                  "2-sigma interval reached zero, so no step was taken along it (a step there is set by the trust "
                  "region's size, not by the data)" for n in held)
     intervals = judge(specs, values, sigma_robust, prior)
