@@ -433,8 +433,8 @@ class FitResult:
         profile_runs: replays of the parameters' profiles (``profile_replays``; also in ``sim_runs``).
         robust: the robust covariance of the coordinates (:class:`sysid.covariance.RobustCovariance`:
             method, ``(p, p)`` matrix, lag window), or None (``robust=None``, or no Jacobian).
-        held: the parameters :func:`fit` ``hold_unidentified`` held (no step taken along them) at the last accepted point
-            (each has a line in ``warnings``).
+        held: the parameters :func:`fit` ``hold_unidentified`` held (no step taken along them) at the last
+            accepted point (each has a line in ``warnings``).
     """
 
     names: tuple[str, ...]
@@ -686,8 +686,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             and on nominal_s101 the bending stiffness went x13.8 in the first step, from 0.0074 to 0.103
             (session 51), where the fit then stopped. A held parameter is re-judged at every accepted point
             and released once the data identify it; those held at the last one are :attr:`FitResult.held`,
-            each with a warning, and are reported where they were held (their start, unless an earlier step moved them) with their interval. False: every parameter
-            is stepped (``thinshell sysid``: True).
+            each with a warning, and are reported where they were held (their start, unless an earlier step
+            moved them) with their interval. False: every parameter is stepped (``thinshell sysid``: True).
         first_step: width of the local phase's first trust region in every search coordinate (log units for a
             positive parameter; :func:`first_region_scale` sets ``least_squares``' ``x_scale`` for it). None: the
             method's own (``x_scale = 1``: 2.63 log units, a factor 13.8, within the default bounds).
