@@ -253,18 +253,22 @@ class ListRows(np.lib.mixins.NDArrayOperatorsMixin):
             raise AttributeError(name)
         return getattr(np.asarray(self), name)
 
-    def same_as(self, other: object) -> bool:
-        """Whether ``other`` is a :class:`ListRows` of the same base and rows (the same array objects): the same
-        values, known without gathering them."""
-        return (isinstance(other, ListRows) and other.base_rows[0] is self.base_rows[0]
-                and other.base_rows[1] is self.base_rows[1])
-
 
 def same_rows(a, b) -> bool:
-    """Whether two arrays (or :class:`ListRows`) hold the same values: the same object or the same base and rows
-    (:meth:`ListRows.same_as`: nothing gathered), else equal arrays."""
-    if a is b or (isinstance(a, ListRows) and a.same_as(b)):
+    """Whether two arrays (or :class:`ListRows`) are known to hold the same values: the same object; for two
+    :class:`ListRows`, equal rows of equal bases (rows and bases compared, each the same object or equal arrays:
+    nothing gathered; a sufficient test, False where the bases differ outside the rows); False for a :class:`ListRows`
+    beside an array; else equal arrays. (False only costs a caller an evaluation made again, as
+    :func:`same_vertices`.)"""
+
+    def equal(u, v) -> bool:
+        return u is v or (u.shape == v.shape and np.array_equal(u, v))
+
+    if a is b:
         return True
+    if isinstance(a, ListRows) or isinstance(b, ListRows):
+        return (isinstance(a, ListRows) and isinstance(b, ListRows) and equal(a.base_rows[1], b.base_rows[1])
+                and equal(a.base_rows[0], b.base_rows[0]))
     return np.shape(a) == np.shape(b) and np.array_equal(a, b)
 
 

@@ -145,6 +145,9 @@ def test_list_rows_equal_the_whole_gathers_and_read_only_the_rows():
             np.testing.assert_array_equal(got, expected)
         assert rows.whole_gathers == 0
         assert same_rows(rows, ListRows(base, kept)) and rows.whole_gathers == 0
+        assert same_rows(rows, ListRows(base.copy(), kept.copy())) and rows.whole_gathers == 0
+        assert not same_rows(rows, ListRows(base, kept[1:])) and not same_rows(rows, ListRows(base[::-1].copy(), kept))
+        assert not same_rows(rows, want) and rows.whole_gathers == 0  # (beside an array: not known, nothing gathered)
         with pytest.raises(IndexError, match="boolean index of 3"):
             rows[np.ones(3, dtype=bool)]
         with pytest.raises(IndexError):
@@ -154,26 +157,29 @@ def test_list_rows_equal_the_whole_gathers_and_read_only_the_rows():
         np.testing.assert_array_equal(rows[1:4], want[1:4])
         assert rows.tolist() == want.tolist() and rows.min() == want.min()
         assert rows.whole_gathers == 1 and not np.asarray(rows).flags.writeable
-        assert same_rows(rows, want.copy()) and not same_rows(rows, want[::-1].copy())
+        assert same_rows(want, want.copy()) and not same_rows(want, want[::-1].copy())
     np.testing.assert_array_equal(np.take(ListRows(sides, kept), np.arange(3)), sides[kept[:3]])  # (1-D, axis None)
 
 
 def _forming_steps_without_releases() -> list:
     """:func:`_forming_steps` without the releases of stale sides (a line search's failure, which reads every pair's
     side): a pressed Forming contact set through two steps, a trial point with new lists in the second; each step's
-    friction rows (vertices, weights, tangent bases, normals, ``lam``, ``mu``, sources), each point's edge-edge pairs and
-    sides against the list's kept rows, energies, gradients, Hessian blocks and frames, each end's memory."""
+    set-up made twice (the second's potentials take the first's evaluation of ``x^n``: equal pairs and sides, compared),
+    its friction rows (vertices, weights, tangent bases, normals, ``lam``, ``mu``, sources), each point's energies,
+    gradients, Hessian blocks, frames and distances, each end's memory."""
     contact, x = _forming_contact("taichi-cpu")
     rng = np.random.default_rng(11)
     x_n = x + 0.4 * contact.eps * rng.normal(size=x.shape)
     x_n.flags.writeable = False
     sheet = sheet_mask(contact)
     out, pots = [], []
-    memory = contact.begin_step(x_n, None)
+    state_memory = None
     for k in range(2):
-        friction = contact.friction(x_n, 0.01, memory)
-        out.append([friction.vertices, friction.weights, friction.tangent, friction.normal, friction.lam, friction.mu]
-                   + [s.pair_index for s in friction.row_sources])
+        for _ in range(2):  # the step's set-up twice: the second's potentials take the first's evaluation of x^n
+            memory = contact.begin_step(x_n, state_memory)
+            friction = contact.friction(x_n, 0.01, memory)
+            out.append([friction.vertices, friction.weights, friction.tangent, friction.normal, friction.lam,
+                        friction.mu] + [s.pair_index for s in friction.row_sources])
         y, points = step_points(contact, x_n, sheet, rng, bool(k))
         for point in points:
             vt, ee = contact.potentials(point, x_n, memory)[:2]
@@ -188,7 +194,7 @@ def _forming_steps_without_releases() -> list:
         out.append([end.vertex_triangle.pairs, end.vertex_triangle.sides, end.edge_edge.pairs, end.edge_edge.sides])
         x_n = y
         x_n.flags.writeable = False
-        memory = contact.begin_step(x_n, end)
+        state_memory = end
     return out, pots, contact
 
 
@@ -224,4 +230,4 @@ def test_edge_edge_pairs_and_sides_read_by_rows_equal_the_host_takes(ti_cpu, mon
         for a, b in zip(want, got):
             np.testing.assert_array_equal(a, b)
     assert len(host_run[0][0]) and len(host_run[0][2])  # friction rows and their frames at the first step
-    assert any(len(pot.pairs) for pot in host_pots) and len(host_run[1][10])  # edge-edge Hessian blocks
+    assert any(len(pot.pairs) for pot in host_pots) and len(host_run[2][10])  # edge-edge Hessian blocks
