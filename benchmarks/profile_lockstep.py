@@ -38,9 +38,10 @@ bench's: the synchronisations serialise host and device). ``--schedules dots,pan
 ``--B``; a size may repeat) sets the envelope Cholesky's schedule on CUDA (``envelope_cholesky.CUDA_SCHEDULE``, and
 ``SCHEDULE`` for the CPU arch) before each entry's batch is built, so that schedules are compared in one process, each
 (size, schedule) accounted once; ``panels:rows``, ``panels:vertices`` set the substitution of ``"dots"`` /
-``"panels"`` too (``envelope_cholesky.SUBSTITUTION``). ``--edge-edge-rows rows,takes,...`` (one for each entry of ``--B``)
-reads the contact set's edge-edge potential's pairs and sides by rows (``ListRows``) or takes every kept row on the host
-at each step's set-up (``contact_set.ListRows`` replaced by ``np.take``), set before each entry's batch is built. After each size a memory line: this process's GPU memory (``nvidia-smi``, as
+``"panels"`` too (``envelope_cholesky.SUBSTITUTION``). ``--edge-edge-rows rows,takes,...`` (one for each entry of
+``--B``) reads the contact set's edge-edge potential's pairs and sides by rows (``ListRows``) or takes every kept row on
+the host at each step's set-up (``contact_set.ListRows`` replaced by ``np.take``), set before each entry's batch is
+built. After each size a memory line: this process's GPU memory (``nvidia-smi``, as
 ``thinshell bench batch``'s ``gpu_mib_per_copy``) and resident host memory after its steps, their growth over the size
 and per copy, and the GPU memory free. ``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's
 compiler in the profiled region).
@@ -84,11 +85,11 @@ def main() -> int:
                          "accounted once per schedule; dots:rows, panels:vertices, ... set the substitution too "
                          "(envelope_cholesky.SUBSTITUTION)")
     ap.add_argument("--edge-edge-rows", default=None, metavar="NAMES",
-                    help="Forming: for each entry of --B in turn (comma-separated) 'rows' (the contact set's edge-edge "
-                         "potential's pairs and sides as ListRows, read by rows) or 'takes' (the host's np.take of every "
-                         "kept row at each step's set-up: contact_set.ListRows replaced), set before the entry's batch "
-                         "is built, so that both are compared in one process; with --account a size is accounted once "
-                         "per name")
+                    help="Forming: for each entry of --B in turn (comma-separated) 'rows' (the contact set's "
+                         "edge-edge potential's pairs and sides as ListRows, read by rows) or 'takes' (the host's "
+                         "np.take of every kept row at each step's set-up: contact_set.ListRows replaced), set before "
+                         "the entry's batch is built, so that both are compared in one process; with --account a size "
+                         "is accounted once per name")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
     add_emulation_flag(ap)

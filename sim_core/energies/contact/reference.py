@@ -183,7 +183,8 @@ class ListRows(np.lib.mixins.NDArrayOperatorsMixin):
 
     Rows (:meth:`take` along axis 0, ``v[rows]`` with an int or bool index array) are ``base[rows[indices]]``: the
     values of the whole gather's rows, bit for bit. Anything else (``np.asarray(v)``, arithmetic and comparisons,
-    slices, other array methods) reads the whole array, gathered once and kept read-only (:attr:`whole_gathers` counts those).
+    slices, other array methods) reads the whole array, gathered once and kept read-only (:attr:`whole_gathers` counts
+    those).
 
     Args:
         base: the array whose rows these are, ``(m, ...)`` (kept, not copied; never changed while this exists).
