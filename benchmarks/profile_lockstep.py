@@ -38,7 +38,10 @@ bench's: the synchronisations serialise host and device). ``--schedules dots,pan
 ``--B``; a size may repeat) sets the envelope Cholesky's schedule on CUDA (``envelope_cholesky.CUDA_SCHEDULE``, and
 ``SCHEDULE`` for the CPU arch) before each entry's batch is built, so that schedules are compared in one process, each
 (size, schedule) accounted once; ``panels:rows``, ``panels:vertices`` set the substitution of ``"dots"`` /
-``"panels"`` too (``envelope_cholesky.SUBSTITUTION``). After each size a memory line: this process's GPU memory (``nvidia-smi``, as
+``"panels"`` too (``envelope_cholesky.SUBSTITUTION``). ``--edge-edge-rows rows,takes,...`` (one for each entry of
+``--B``) reads the contact set's edge-edge potential's pairs and sides by rows (``ListRows``) or takes every kept row on
+the host at each step's set-up (``contact_set.ListRows`` replaced by ``np.take``), set before each entry's batch is
+built. After each size a memory line: this process's GPU memory (``nvidia-smi``, as
 ``thinshell bench batch``'s ``gpu_mib_per_copy``) and resident host memory after its steps, their growth over the size
 and per copy, and the GPU memory free. ``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's
 compiler in the profiled region).
@@ -81,6 +84,12 @@ def main() -> int:
                          "arch, set before the entry's batch is built), so that schedules are compared in one process; with --account a size is "
                          "accounted once per schedule; dots:rows, panels:vertices, ... set the substitution too "
                          "(envelope_cholesky.SUBSTITUTION)")
+    ap.add_argument("--edge-edge-rows", default=None, metavar="NAMES",
+                    help="Forming: for each entry of --B in turn (comma-separated) 'rows' (the contact set's "
+                         "edge-edge potential's pairs and sides as ListRows, read by rows) or 'takes' (the host's "
+                         "np.take of every kept row at each step's set-up: contact_set.ListRows replaced), set before "
+                         "the entry's batch is built, so that both are compared in one process; with --account a size "
+                         "is accounted once per name")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
     add_emulation_flag(ap)
@@ -121,8 +130,18 @@ def main() -> int:
     memory = _Memory()
     sizes = _sizes(args.B)
     schedules = _schedules(args.schedules, len(sizes), ap)
+    rows_modes = _edge_edge_rows(args.edge_edge_rows, len(sizes), ap)
     accounted: set = set()
-    for B, schedule in zip(sizes, schedules):
+    for B, schedule, rows_mode in zip(sizes, schedules, rows_modes):
+        if rows_mode is not None:
+            import numpy as np
+
+            from sim_core import contact_set
+            from sim_core.energies.contact.reference import ListRows
+
+            contact_set.ListRows = ListRows if rows_mode == "rows" else (
+                lambda base, kept: np.take(base, kept, axis=0))
+            print(f"B={B}: the edge-edge potential's pairs and sides by {rows_mode}", flush=True)
         if schedule is not None:
             from sim_core.ti_kernels import envelope_cholesky
 
@@ -132,6 +151,7 @@ def main() -> int:
                 envelope_cholesky.SUBSTITUTION = substitution
             print(f"B={B}: the envelope's schedule on CUDA {schedule}", flush=True)
         label = str(B) if schedule is None else f"{B} {schedule}"
+        label = label if rows_mode is None else f"{label} {rows_mode}"
         sc.SolverConfig = config
         for rec in timers.values():
             rec[0], rec[1] = 0, 0.0
@@ -154,8 +174,9 @@ def main() -> int:
             _profile_size(run, B, args, timers, cg_iterations, phases, label)
         memory.after(B)
         del run
-        if args.account and not args.task and B in _sizes(args.account) and (B, schedule) not in accounted:
-            accounted.add((B, schedule))  # again, the device synchronised
+        if (args.account and not args.task and B in _sizes(args.account)
+                and (B, schedule, rows_mode) not in accounted):
+            accounted.add((B, schedule, rows_mode))  # again, the device synchronised
             run = _with_config(config, orig, lambda: _FormingRun(B, args.steps + 1, backend, lockstep=True))
             phases.sync = _device_sync()
             _profile_size(run, B, args, timers, cg_iterations, phases, f"{label} (account: synchronised phases)")
@@ -561,6 +582,17 @@ def _schedules(text, count: int, ap) -> list:
     if len(names) != count or not all(_known(name) for name in names):
         ap.error(f"--schedules needs one of {'|'.join(known)} (dots and panels with :rows, :vertices or :vertices-ahead, optional) for "
                  f"each of the {count} entries of --B; got {text!r}")
+    return names
+
+
+def _edge_edge_rows(text, count: int, ap) -> list:
+    """The names of ``--edge-edge-rows`` (``text``, comma-separated ``rows`` / ``takes``, one for each of the ``count``
+    entries of ``--B``), or ``count`` Nones without it; ``ap.error`` on a count that differs or an unknown name."""
+    if text is None:
+        return [None] * count
+    names = [name.strip() for name in str(text).split(",")]
+    if len(names) != count or not all(name in ("rows", "takes") for name in names):
+        ap.error(f"--edge-edge-rows needs rows|takes for each of the {count} entries of --B; got {text!r}")
     return names
 
 

@@ -36,7 +36,8 @@ from sim_core.collision.step_sides import step_sides
 from sim_core.coulomb_coefficients import CoulombCoefficients
 from sim_core.energies.base import FrozenPositionsKey, PenaltyContact, declares
 from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs, sheet_vertices_off_solids
-from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
+from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, ListRows, PlaneContact,
+                                                 VertexTriangleContact,
                                                  concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.energies.friction.reference import LaggedFriction, smooth_friction_f0
 from sim_core.energies.sphere_contact.reference import SphereContact
@@ -658,7 +659,10 @@ class ContactSet:
         """Potentials over ``candidates`` with the step's sides (:meth:`_pair_sides`, of every pair in one geometry
         evaluation for both pair kinds; those of the step's last lists when these are the same arrays). Returns the
         two potentials and the rows of the edge-edge candidates the edge-edge potential kept, int64 ``(q,)`` (the
-        vertex-triangle potential keeps every candidate, in order)."""
+        vertex-triangle potential keeps every candidate, in order). The edge-edge potential's pairs and sides are
+        the kept rows of the list and of its sides as :class:`~sim_core.energies.contact.reference.ListRows`
+        (gathered where read: the active rows; the pair batch reads the sides by layout row, on CUDA where the
+        sides' launch wrote them)."""
         x_ref = self.x_prev if self.x_prev is not None else x
         _, vt, ee = candidates
         table = getattr(self, "_step_table", None)
@@ -670,9 +674,9 @@ class ContactSet:
             self._step_table = (memory, x_ref, vt, ee, (vt_sides, ee_rows, ee_sides))
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
         lists = self._list_vertices(vt, ee)
-        ee_kept = np.take(ee, ee_rows, axis=0)
+        ee_kept = ListRows(ee, ee_rows)  # the kept rows of the list and of its sides: gathered only where read
         pots = (self._vertex_triangle(vt, vt_sides, lists.vt_vertices),
-                self._edge_edge(ee_kept, np.take(ee_sides, ee_rows), lists.kept_edge_edge_vertices(ee_rows, ee_kept)))
+                self._edge_edge(ee_kept, ListRows(ee_sides, ee_rows), lists.kept_edge_edge_vertices(ee_rows, ee_kept)))
         for pot in pots:
             pot.workspace = self.workspace
         if self.taichi:

@@ -170,7 +170,107 @@ class PairVertices:
         """Whether ``other`` is a :class:`PairVertices` of equal pairs over the same elements (the same array object)
         by the same gather: the same vertices, known without gathering them."""
         return (isinstance(other, PairVertices) and other.elements is self.elements and other._gather is self._gather
-                and (other.pairs is self.pairs or np.array_equal(other.pairs, self.pairs)))
+                and same_rows(other.pairs, self.pairs))
+
+
+class ListRows(np.lib.mixins.NDArrayOperatorsMixin):
+    """The rows ``rows`` of an array ``base`` (``base[rows]``, shape ``(len(rows),) + base.shape[1:]``), gathered by
+    rows when rows are asked for, not kept whole: a contact set's edge-edge potential's pairs and step sides, which
+    are the kept rows (not near-parallel) of the edge-edge candidate list and of its sides
+    (:meth:`sim_core.contact_set.ContactSet._search`), where the pair batch reads the sides on the device and the
+    host reads only the rows it uses (the active pairs', a few per cent): no host gather of every kept candidate (23
+    MB of pairs and 11 MB of sides at 1024 Forming copies) at a step's set-up.
+
+    Rows (:meth:`take` along axis 0, ``v[rows]`` with an int or bool index array) are ``base[rows[indices]]``: the
+    values of the whole gather's rows, bit for bit. Anything else (``np.asarray(v)``, arithmetic and comparisons,
+    slices, other array methods) reads the whole array, gathered once and kept read-only (:attr:`whole_gathers` counts
+    those).
+
+    Args:
+        base: the array whose rows these are, ``(m, ...)`` (kept, not copied; never changed while this exists).
+        rows: the rows, int ``(r,)`` in ``[0, m)`` (kept).
+
+    Attributes:
+        base_rows: ``(base, rows)`` as given.
+        shape, dtype, ndim: those of ``base[rows]``.
+        whole_gathers: how many times the whole array was gathered (0 or 1).
+    """
+
+    def __init__(self, base: np.ndarray, rows: np.ndarray) -> None:
+        self.base_rows = (base, rows)
+        self.shape = (len(rows),) + tuple(base.shape[1:])
+        self.dtype = base.dtype
+        self.ndim = base.ndim
+        self._whole: np.ndarray | None = None
+        self.whole_gathers = 0
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    @property
+    def size(self) -> int:
+        """The number of entries (``prod(shape)``)."""
+        return int(np.prod(self.shape))
+
+    def take(self, indices, axis=None, out=None, mode="raise") -> np.ndarray:
+        """Rows ``indices`` (int ``(a,)``) along axis 0 (or along the only axis): ``base[rows[indices]]``, a new
+        array (the kept whole array's rows where it was made); any other axis, or ``out``, takes from the whole
+        array."""
+        if out is not None or not (axis == 0 or (axis is None and self.ndim == 1)):
+            return np.take(np.asarray(self), indices, axis=axis, out=out, mode=mode)
+        if self._whole is not None:
+            return np.take(self._whole, indices, axis=0, mode=mode)
+        base, rows = self.base_rows
+        return np.take(base, np.take(rows, indices, mode=mode), axis=0)
+
+    def __getitem__(self, index) -> np.ndarray:
+        if isinstance(index, np.ndarray) and index.ndim == 1 and (index.dtype == bool or index.dtype.kind in "iu"):
+            if index.dtype == bool and len(index) != self.shape[0]:
+                raise IndexError(f"ListRows: a boolean index of {len(index)} for {self.shape[0]} rows")
+            return self.take(np.flatnonzero(index) if index.dtype == bool else index, axis=0)
+        return np.asarray(self)[index]
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        """The whole array (gathered once, kept read-only; a new array where ``copy`` or another ``dtype`` asks)."""
+        if self._whole is None:
+            base, rows = self.base_rows
+            self._whole = np.take(base, rows, axis=0)
+            self._whole.flags.writeable = False
+            self.whole_gathers += 1
+        if copy:
+            return np.array(self._whole, dtype=dtype, copy=True)
+        return self._whole if dtype is None else self._whole.astype(dtype, copy=False)
+
+    def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):
+        """Arithmetic and comparisons on the whole array (:meth:`__array__`)."""
+        inputs = tuple(np.asarray(a) if isinstance(a, ListRows) else a for a in inputs)
+        if "out" in kwargs:
+            kwargs["out"] = tuple(np.asarray(a) if isinstance(a, ListRows) else a for a in kwargs["out"])
+        return getattr(ufunc, method)(*inputs, **kwargs)
+
+    def __getattr__(self, name: str):
+        """Any other array attribute or method (``tolist``, ``copy``, ``min`` ...) of the whole array."""
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return getattr(np.asarray(self), name)
+
+
+def same_rows(a, b) -> bool:
+    """Whether two arrays (or :class:`ListRows`) are known to hold the same values: the same object; for two
+    :class:`ListRows`, equal rows of equal bases (rows and bases compared, each the same object or equal arrays:
+    nothing gathered; a sufficient test, False where the bases differ outside the rows); False for a :class:`ListRows`
+    beside an array; else equal arrays. (False only costs a caller an evaluation made again, as
+    :func:`same_vertices`.)"""
+
+    def equal(u, v) -> bool:
+        return u is v or (u.shape == v.shape and np.array_equal(u, v))
+
+    if a is b:
+        return True
+    if isinstance(a, ListRows) or isinstance(b, ListRows):
+        return (isinstance(a, ListRows) and isinstance(b, ListRows) and equal(a.base_rows[1], b.base_rows[1])
+                and equal(a.base_rows[0], b.base_rows[0]))
+    return np.shape(a) == np.shape(b) and np.array_equal(a, b)
 
 
 def same_vertices(a, b) -> bool:
@@ -417,7 +517,7 @@ class _PairPenalty:
         last = None if other is None else workspace_of(other).get(other, "evaluation")
         if (last is not None and type(other) is type(self) and other.eps == self.eps
                 and same_vertices(other.vertices, self.vertices)
-                and np.array_equal(other.sides, self.sides)):
+                and same_rows(other.sides, self.sides)):
             workspace_of(self).put(self, "evaluation", last)
 
     def active_distances(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -573,7 +673,9 @@ class EdgeEdgeContact(_PairPenalty):
         vertices: the pairs' global vertices ``(p, 4)`` as :func:`edge_edge_vertices` gives them, when the
             caller has them (a contact set's candidate lists: once per search), else computed here.
         checked: the pairs' edge rows and the sides' values are known good (as for
-            :class:`VertexTriangleContact`): not checked again.
+            :class:`VertexTriangleContact`): not checked again; with ``checked``, ``pairs`` (int64) and ``sides``
+            (float64) may be :class:`ListRows` (rows of a candidate list and of its sides), kept as they are and
+            gathered by rows where read.
 
     Raises:
         ConfigError: bad stiffness, eps, sides or shapes.
@@ -583,12 +685,21 @@ class EdgeEdgeContact(_PairPenalty):
                  vertices: np.ndarray | None = None, checked: bool = False):
         where = "EdgeEdgeContact"
         _check_penalty(stiffness, eps, where)
-        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        if checked and isinstance(pairs, ListRows):  # rows of a checked list: gathered where read
+            if pairs.dtype != np.int64 or pairs.ndim != 2 or pairs.shape[1:] != (2,):
+                raise ConfigError(f"{where}: pairs of shape {pairs.shape} ({pairs.dtype}), want int64 (p, 2)")
+        else:
+            pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         if not checked and pairs.size and (pairs.min() < 0 or pairs.max() >= edges.shape[0]):
             raise ConfigError(f"{where}: edge index out of range [0, {edges.shape[0]})")
         self.pairs = pairs
-        self.sides = _check_sides(sides, pairs.shape[0], where, values=not checked)
+        if checked and isinstance(sides, ListRows):
+            if sides.dtype != np.float64 or sides.shape != (pairs.shape[0],):
+                raise ConfigError(f"{where}: {pairs.shape[0]} pairs but sides of shape {sides.shape} ({sides.dtype})")
+            self.sides = sides
+        else:
+            self.sides = _check_sides(sides, pairs.shape[0], where, values=not checked)
         if vertices is None:
             vertices = edge_edge_vertices(pairs, edges)
         elif np.shape(vertices) != (pairs.shape[0], 4):

@@ -21,7 +21,7 @@ from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, CopyE
 NOT_POTENTIALS = {
     "sim_core.energies.base": ({"HessianBlocks", "Potential", "FrozenPositionsKey", "BorrowedWorkspace"}
                                | {c.__name__ for c in CAPABILITIES}),
-    "sim_core.energies.contact.reference": {"ContactFrames", "PairEvaluation", "PairVertices"},
+    "sim_core.energies.contact.reference": {"ContactFrames", "ListRows", "PairEvaluation", "PairVertices"},
     "sim_core.energies.contact.pair_lists": {"CandidateVertices", "BatchLayout"},
     "sim_core.energies.green_strain.reference": {"GreenStrainTets"},
     "sim_core.candidates.hook": {"CandidateHook", "StepHook", "GelContactFace"},
