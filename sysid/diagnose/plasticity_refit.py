@@ -224,8 +224,10 @@ def with_shear_layer(model: Any, tack: dict[str, Any], t: np.ndarray, data: np.n
     ``keep_best``) is the layer's replay of ``params`` with the release, and it is also the layer's carried replay
     up to the release, the only steps read from it (:func:`tack_base`'s and the yield search's resumes take the steps
     before the release, :func:`~sysid.diagnose.resume.steps_before`; the release acts on none of them,
-    :meth:`sim_core.candidates.hook.CandidateHook.released`). Where the search kept none (it ended on a replay that
-    diverged), the carried replay is made: one replay more.
+    :meth:`sim_core.candidates.hook.CandidateHook.released`: its states there are the carried replay's to the bit,
+    tests/sysid/diagnose/test_plasticity_lift.py); as the released replay it is made from the start, where a resume
+    from the carried replay gives the same to round-off. Where the search kept no replay at its best (a cost that is
+    not a number), the carried replay is made as before: one replay more.
 
     Args:
         model: the calibrated observation model.
