@@ -236,10 +236,10 @@ def with_shear_layer(model: Any, tack: dict[str, Any], t: np.ndarray, data: np.n
 
     Returns:
         ``tack`` itself, or with the layer: ``params`` with its bond strength and ``k_t``, ``beta``,
-        ``shear_stiffness`` (N/m a pair), ``shear_layer`` (the search's :meth:`~sysid.diagnose.shear_layer.ShearLayer.summary`:
-        its profile and the sigma of ``ln k_t``), ``carried`` replaced (a replay with its states, the same as the carried
-        one before the release) and ``replay``: the replay of ``params`` itself (with the release; None where the
-        carried replay was made without it).
+        ``shear_stiffness`` (N/m a pair), ``shear_layer`` (the search's
+        :meth:`~sysid.diagnose.shear_layer.ShearLayer.summary`: its profile and the sigma of ``ln k_t``), ``carried``
+        replaced (a replay with its states, the same as the carried one before the release) and ``replay``: the
+        replay of ``params`` itself (with the release; None where the carried replay was made without it).
     """
     from sysid.diagnose.peel import RELEASE_TIME_SETTING
     from sysid.diagnose.shear_layer import fit_shear_layer, sheet_rms

@@ -100,7 +100,8 @@ def test_normal_only_bonds_never_fold_the_card(lift_fold, nominal):
 def _same(a, b) -> bool:
     """Two state fields equal to the bit (arrays, dicts and sequences of them, numbers, objects by their fields)."""
     if isinstance(a, dict) or isinstance(b, dict):
-        return isinstance(a, dict) and isinstance(b, dict) and a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+        return (isinstance(a, dict) and isinstance(b, dict) and a.keys() == b.keys()
+                and all(_same(a[k], b[k]) for k in a))
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
         a, b = np.asarray(a), np.asarray(b)
         return a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True)
@@ -130,8 +131,9 @@ def test_the_layer_replay_with_the_release_is_the_carried_one_before_it_and_the_
     carried = model.simulate({k: v for k, v in params.items() if k != RELEASE_TIME_SETTING}, keep_states=True)
     resume = resume_before_time(carried, RELEASE_S)
     assert resume is not None and resume.step > 0
-    assert any(np.asarray(s.candidate_state.get("adhesion_anchor_triangle", ())).size for s in carried.states[:resume.step])
-    for k in range(resume.step + 1):  # the card is carried by the layer's bonds over these steps
+    bonded = [np.asarray(s.candidate_state.get("adhesion_anchor_triangle", ())).size for s in carried.states]
+    assert any(bonded[:resume.step])  # the card is carried by the layer's bonds over the steps compared
+    for k in range(resume.step + 1):
         assert _same(vars(released.states[k]), vars(carried.states[k])), f"state {k} differs"
     resumed = np.asarray(model.predict(model.simulate(params, resume=resume))["sheet_points"], dtype=float)
     kept = np.asarray(model.predict(released)["sheet_points"], dtype=float)
