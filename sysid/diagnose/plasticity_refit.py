@@ -220,8 +220,14 @@ def with_shear_layer(model: Any, tack: dict[str, Any], t: np.ndarray, data: np.n
     points of the rows before the peel, :func:`sysid.diagnose.shear_layer.fit_shear_layer`, at most
     :data:`LAYER_REPLAYS` replays, bonds of :data:`~sysid.diagnose.shear_layer.LAYER_BOND_WEIGHTS` card weights), so
     the card arches and folds as the gel carries it back. Those rows are not the refit's (the effect's windows
-    follow the release). One more replay: the layer's carried replay with its states (no release), the start of
-    the yield-angle search's replays.
+    follow the release). No more replay: the search's own replay at the fitted ``k_t`` (kept with its states,
+    ``keep_best``) is the layer's replay of ``params`` with the release, and it is also the layer's carried replay
+    up to the release, the only steps read from it (:func:`tack_base`'s and the yield search's resumes take the steps
+    before the release, :func:`~sysid.diagnose.resume.steps_before`; the release acts on none of them,
+    :meth:`sim_core.candidates.hook.CandidateHook.released`: its states there are the carried replay's to the bit,
+    tests/sysid/diagnose/test_plasticity_lift.py); as the released replay it is made from the start, where a resume
+    from the carried replay gives the same to round-off. Where the search kept no replay at its best (a cost that is
+    not a number), the carried replay is made as before: one replay more.
 
     Args:
         model: the calibrated observation model.
@@ -230,20 +236,27 @@ def with_shear_layer(model: Any, tack: dict[str, Any], t: np.ndarray, data: np.n
 
     Returns:
         ``tack`` itself, or with the layer: ``params`` with its bond strength and ``k_t``, ``beta``,
-        ``shear_stiffness`` (N/m a pair) and ``carried`` replaced.
+        ``shear_stiffness`` (N/m a pair), ``shear_layer`` (the search's
+        :meth:`~sysid.diagnose.shear_layer.ShearLayer.summary`: its profile and the sigma of ``ln k_t``), ``carried``
+        replaced (a replay with its states, the same as the carried one before the release) and ``replay``: the
+        replay of ``params`` itself (with the release; None where the carried replay was made without it).
     """
     from sysid.diagnose.peel import RELEASE_TIME_SETTING
     from sysid.diagnose.shear_layer import fit_shear_layer, sheet_rms
 
     carried = t < tack["peel_s"]  # the peel's own row out: the replay lets go within a step of the recording
-    layer = fit_shear_layer(model, tack["params"], tack["beta"], data, sigma, carried, max_replays=LAYER_REPLAYS)
+    layer = fit_shear_layer(model, tack["params"], tack["beta"], data, sigma, carried, max_replays=LAYER_REPLAYS,
+                            keep_best=True)
     normal_only = sheet_rms(model.predict(tack["carried"])["sheet_points"], data, sigma, carried)
     if layer is None or not layer.rms < normal_only:
         return tack
     params = {**tack["params"], **layer.settings()}
+    fitted = {**tack, "params": params, "beta": layer.beta, "shear_stiffness": layer.stiffness,
+              "shear_layer": layer.summary()}
+    if layer.replay is not None:
+        return {**fitted, "carried": layer.replay, "replay": layer.replay}
     held = {k: v for k, v in params.items() if k != RELEASE_TIME_SETTING}
-    return {**tack, "params": params, "beta": layer.beta, "shear_stiffness": layer.stiffness,
-            "carried": model.simulate(held, keep_states=True)}
+    return {**fitted, "carried": model.simulate(held, keep_states=True), "replay": None}
 
 
 def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: np.ndarray,
@@ -257,9 +270,10 @@ def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: 
     ADHESION_PROBE_WEIGHTS` times :func:`~sysid.diagnose.candidates.adhesion_weight_scale` (bonds
     that together bear four card weights: the card follows the gel, and far above that only the pull
     on the gel grows); their release time is the peel read from the recording
-    (:func:`sysid.diagnose.peel.tack_with_peel`). Two replays. With ``shear_layer`` the bonds hold the card in
-    shear too where that follows the carried card better (:func:`with_shear_layer`: up to
-    :data:`LAYER_REPLAYS` + 1 replays more): a card that slides along the gel never folds.
+    (:func:`sysid.diagnose.peel.tack_with_peel`). Two replays (the released one resumed from the carried one
+    before the peel). With ``shear_layer`` the bonds hold the card in shear too where that follows the carried card
+    better (:func:`with_shear_layer`: up to :data:`LAYER_REPLAYS` replays more, whose best is the released replay
+    itself, so that the released replay is not made again): a card that slides along the gel never folds.
 
     Returns:
         ``{"params", "peel_s", "beta", "prediction" (n, p, 3) m, "train_rms", "nominal_train_rms"}`` (and
@@ -280,8 +294,11 @@ def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: 
         return None
     if shear_layer:
         tack = with_shear_layer(model, tack, t, data, sigma)
-    resume = resume_before_time(tack["carried"], tack["params"][RELEASE_TIME_SETTING])
-    pred = np.asarray(model.predict(model.simulate(tack["params"], resume=resume))["sheet_points"], dtype=float)
+    trace = tack.pop("replay", None)
+    if trace is None:
+        resume = resume_before_time(tack["carried"], tack["params"][RELEASE_TIME_SETTING])
+        trace = model.simulate(tack["params"], resume=resume)
+    pred = np.asarray(model.predict(trace)["sheet_points"], dtype=float)
     n_tr = max(data[:, train].size, 1)
     c_tack, c_nom = _sse(data[:, train], pred[:, train], sigma), _sse(data[:, train], nominal[:, train], sigma)
     if not c_tack < c_nom:

@@ -10,7 +10,7 @@ straight ramp where the recorded card arches and folds. The layer's physics is
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -73,6 +73,9 @@ class ShearLayer:
         log_sigma: 1-sigma of ``ln k_t`` from the curvature of the sheet points' cost at the best (:func:`_log_sigma`;
             nan when the search ends on a bound).
         normal_ratio: the bonds' normal over shear stiffness, None for the cohesive normal law (:func:`layer_settings`).
+        replay: the search's replay at ``stiffness`` (a :class:`~sysid.replay_trace.SimTrace` with its states, the
+            parameters given to :func:`fit_shear_layer` with :meth:`settings`), where the search kept it
+            (``keep_best``); None otherwise. Not part of the summary or of equality.
     """
 
     stiffness: float
@@ -81,6 +84,7 @@ class ShearLayer:
     profile: tuple[tuple[float, float], ...]
     log_sigma: float
     normal_ratio: float | None = None
+    replay: Any = field(default=None, compare=False, repr=False)
 
     def settings(self) -> dict[str, float]:
         """The simulator parameters of the layer at its best, as :func:`fit_shear_layer` replayed it (bond strength and
@@ -96,7 +100,8 @@ class ShearLayer:
 
 def fit_shear_layer(model, params: dict[str, float], card_beta: float, data: np.ndarray, sigma: np.ndarray,
                     rows: np.ndarray, bounds: tuple[float, float] = SHEAR_STIFFNESS_BOUNDS, grid: int = SHEAR_GRID,
-                    max_replays: int = SHEAR_MAX_REPLAYS, normal_ratio: float | None = None) -> ShearLayer | None:
+                    max_replays: int = SHEAR_MAX_REPLAYS, normal_ratio: float | None = None,
+                    keep_best: bool = False) -> ShearLayer | None:
     """The tangential stiffness ``k_t`` of the tack's compliant layer that best follows the carried card.
 
     The layer (:mod:`sim_core.candidates.adhesion`, shear compliance) holds the bonded card points in shear with
@@ -116,6 +121,9 @@ def fit_shear_layer(model, params: dict[str, float], card_beta: float, data: np.
             (defaults: the search at the start's materials).
         normal_ratio: the bonds' normal law (:func:`layer_settings`: None the cohesive law, a number springs of that
             ratio to ``k_t``).
+        keep_best: make every replay with its states and keep the best one (:attr:`ShearLayer.replay`), so that a
+            caller who needs the layer's replay at the fitted ``k_t`` takes it instead of making it again; at most
+            two replays' states are held at once (the best so far and the newest).
 
     Returns:
         the :class:`ShearLayer`, or None when every replay diverged.
@@ -125,14 +133,19 @@ def fit_shear_layer(model, params: dict[str, float], card_beta: float, data: np.
     beta = LAYER_BOND_WEIGHTS / ADHESION_PROBE_WEIGHTS * float(card_beta)
     seen: dict[float, float] = {}
     corr: dict[float, int] = {}  # k -> rows per independent datum of its residual (:func:`_rows_per_datum`)
+    kept: dict[str, Any] = {}  # with keep_best: "key" (rms, k) and "trace" of the best replay so far
 
     def cost(u: float) -> float:
         k = float(math.exp(u))
         if k not in seen:
             try:
-                pred = model.predict(model.simulate({**params, **layer_settings(beta, k, normal_ratio)}))["sheet_points"]
+                trace = model.simulate({**params, **layer_settings(beta, k, normal_ratio)}, keep_states=keep_best)
+                pred = model.predict(trace)["sheet_points"]
                 seen[k] = sheet_rms(pred, data, sigma, rows)
                 corr[k] = _rows_per_datum((np.asarray(pred)[rows] - data[rows]) / sigma)
+                # the best is the profile's first minimum by k (min over the sorted profile, below)
+                if keep_best and ("key" not in kept or (seen[k], k) < kept["key"]):
+                    kept["key"], kept["trace"] = (seen[k], k), trace
             except SimulationDivergedError:
                 seen[k] = math.inf
         return seen[k]
@@ -149,7 +162,8 @@ def fit_shear_layer(model, params: dict[str, float], card_beta: float, data: np.
     profile = tuple(sorted(seen.items()))
     k_best, rms_best = min(profile, key=lambda kv: kv[1])
     data_count = int(rows.sum()) / corr[k_best]
-    return ShearLayer(k_best, beta, rms_best, profile, _log_sigma(profile, k_best, data_count), normal_ratio)
+    replay = kept.get("trace") if kept.get("key", (None, None))[1] == k_best else None
+    return ShearLayer(k_best, beta, rms_best, profile, _log_sigma(profile, k_best, data_count), normal_ratio, replay)
 
 
 def _rows_per_datum(r: np.ndarray) -> int:

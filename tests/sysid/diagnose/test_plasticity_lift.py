@@ -95,3 +95,86 @@ def test_normal_only_bonds_never_fold_the_card(lift_fold, nominal):
     assert "shear_stiffness_N_per_m" not in fit["params"]
     assert fit["detail"]["theta_max"] < 0.2 * TRUE_YIELD  # the largest dihedral angle of its carried card
     assert _share(fit) < 0.1  # measured 0.02
+
+
+def _same(a, b) -> bool:
+    """Two state fields equal to the bit (arrays, dicts and sequences of them, numbers, objects by their fields)."""
+    if isinstance(a, dict) or isinstance(b, dict):
+        return (isinstance(a, dict) and isinstance(b, dict) and a.keys() == b.keys()
+                and all(_same(a[k], b[k]) for k in a))
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        a, b = np.asarray(a), np.asarray(b)
+        return a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True)
+    if isinstance(a, (list, tuple)) or isinstance(b, (list, tuple)):
+        return type(a) is type(b) and len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if hasattr(a, "__dict__") and type(a) is type(b):
+        return _same(vars(a), vars(b))
+    return a == b
+
+
+
+def test_the_layer_replay_with_the_release_is_the_carried_one_before_it_and_the_released_one(lift_fold):
+    """The refit's base takes the layer search's own replay at the fitted ``k_t`` (a replay with the release, kept
+    with its states: :func:`~sysid.diagnose.shear_layer.fit_shear_layer` ``keep_best``) instead of making the layer's
+    carried replay (no release, with states) and its released replay (resumed from it) again. That holds where the
+    release acts on no step before its time: the carried replay's states that the resumes take (those before the
+    release) are the replay's with the release to the bit, and the released replay resumed from them is it to
+    round-off (a resumed replay starts the solver's step-to-step caches afresh)."""
+    from sysid.diagnose.resume import resume_before_time
+
+    bag, dt = lift_fold
+    model = ObservationModel(load_evidence(bag, include_image="auto"), dt=dt)
+    w = adhesion_weight_scale(model.simulation().model)
+    params = {**TRUE_PARAMS, ADHESION_PARAMETER: LAYER_BOND_WEIGHTS * w, SHEAR_STIFFNESS_SETTING: 3.0,
+              RELEASE_TIME_SETTING: RELEASE_S}
+    released = model.simulate(params, keep_states=True)  # as the layer search makes and keeps it
+    carried = model.simulate({k: v for k, v in params.items() if k != RELEASE_TIME_SETTING}, keep_states=True)
+    resume = resume_before_time(carried, RELEASE_S)
+    assert resume is not None and resume.step > 0
+    bonded = [np.asarray(s.candidate_state.get("adhesion_anchor_triangle", ())).size for s in carried.states]
+    assert any(bonded[:resume.step])  # the card is carried by the layer's bonds over the steps compared
+    for k in range(resume.step + 1):
+        assert _same(vars(released.states[k]), vars(carried.states[k])), f"state {k} differs"
+    resumed = np.asarray(model.predict(model.simulate(params, resume=resume))["sheet_points"], dtype=float)
+    kept = np.asarray(model.predict(released)["sheet_points"], dtype=float)
+    assert np.abs(resumed - kept).max() <= 1e-9 * np.abs(kept).max()
+
+
+class _Trace:
+    """A stand-in replay: the ``k_t`` it was made at."""
+
+    def __init__(self, k: float, states: bool) -> None:
+        self.k, self.states = k, ([k] if states else None)
+
+
+class _Model:
+    """A stand-in observation model whose sheet points miss the data by ``ln(k_t / 2)^2`` (+ 0.1 at a bump near
+    k_t 0.3, a second pocket): the layer search's cost has a known best near ``k_t`` 2."""
+
+    def __init__(self) -> None:
+        self.made: list[_Trace] = []
+
+    def simulate(self, params, keep_states: bool = False) -> _Trace:
+        trace = _Trace(float(params[SHEAR_STIFFNESS_SETTING]), keep_states)
+        self.made.append(trace)
+        return trace
+
+    def predict(self, trace: _Trace) -> dict:
+        u = np.log(trace.k)
+        miss = 1.0 + (u - np.log(2.0)) ** 2 - 0.5 * np.exp(-((u - np.log(0.3)) / 0.3) ** 2)
+        return {"sheet_points": np.full((4, 2, 3), miss)}
+
+
+def test_the_layer_search_keeps_the_replay_of_its_best():
+    from sysid.diagnose.plasticity_refit import LAYER_REPLAYS
+    from sysid.diagnose.shear_layer import fit_shear_layer
+
+    model = _Model()
+    data, sigma, rows = np.zeros((4, 2, 3)), np.ones(3), np.ones(4, bool)
+    layer = fit_shear_layer(model, {}, 1.0, data, sigma, rows, max_replays=LAYER_REPLAYS, keep_best=True)
+    assert len(model.made) == LAYER_REPLAYS and all(t.states is not None for t in model.made)
+    best = min(model.made, key=lambda t: (float(model.predict(t)["sheet_points"][0, 0, 0]), t.k))
+    assert layer.replay is best and layer.stiffness == best.k and 1.0 < best.k < 4.0
+    plain = _Model()
+    assert fit_shear_layer(plain, {}, 1.0, data, sigma, rows, max_replays=LAYER_REPLAYS).replay is None
+    assert all(t.states is None for t in plain.made)
