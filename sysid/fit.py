@@ -609,7 +609,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             tack the model lacks) then cannot drive the fit, while channels at their noise level
             keep their weight. A number ``T`` instead of True: only the channels whose whitened RMS at the start
             exceeds ``T`` are weighed so (the channels the model does not follow, ``thinshell sysid`` without the
-            tack layer: :data:`sysid.calibration.FOLLOWED_RMS`); the others keep their noise level. The cost,
+            tack layer: :data:`sysid.calibration.FOLLOWED_RMS`), and only where another channel is at or below
+            ``T`` there (one channel, or all far off at a start far from the fit, has nothing to be rebalanced
+            against); the others keep their noise level. The cost,
             covariance and ``reduced_chi2`` are in these units;
             ``rms_initial`` / ``rms_final`` stay in noise units. The factors are in ``sigma_scale``.
         max_replays: replay budget of the whole fit (every replay counts: plain, with tangents, or a
@@ -1039,7 +1041,10 @@ def _reweight_start(problem: FitProblem, u0: np.ndarray, r0: np.ndarray) -> tupl
     slices = model.channel_slices()
     rms = {ch: float(np.sqrt(np.mean(r0[sl] ** 2))) if sl.stop > sl.start else 1.0 for ch, sl in slices.items()}
     floor = problem.reweight_above
-    scale = {ch: max(1.0, v) if v > floor else 1.0 for ch, v in rms.items()}
+    followed = floor <= 0.0 or any(v <= floor for v in rms.values())
+    # above a floor, only beside a channel the model follows: one channel, or every channel off by a start far from
+    # the fit, has no channel to rebalance against (its weight would only widen the stops' sigmas)
+    scale = {ch: max(1.0, v) if v > floor and followed else 1.0 for ch, v in rms.items()}
     model.sigma_scale = dict(scale)
     vec = np.ones_like(r0)
     for ch, sl in slices.items():

@@ -561,3 +561,10 @@ def test_reweighted_channels_enter_at_unit_variance_and_a_gap_channel_does_not_d
     assert above.sigma_scale["wrench"] > 10.0 and min(above.sigma_scale.values()) == 1.0
     assert above.cost_initial == pytest.approx(
         0.5 * sum(n[ch] * (1.0 if rms0[ch] > FOLLOWED_RMS else rms0[ch] ** 2) for ch in n), rel=1e-9)
+    # a channel above T alone (no followed channel beside it) keeps its noise level: nothing to rebalance against
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lone = ObservationModel(load_evidence(press_bag), dt=DT, channels=("wrench",))
+    lone.data = with_gap
+    alone = fit(lone, [name], initial=start, max_replays=1, reweight_channels=FOLLOWED_RMS)
+    assert alone.rms_initial["wrench"]["whitened_rms"] > 10.0 and alone.sigma_scale == {"wrench": 1.0}
