@@ -362,7 +362,8 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
               + (f" NOT IDENTIFIED (the data give [{result.intervals[name].lower:.4g}, "
                  f"{result.intervals[name].upper:.4g}] within the prior range [{result.intervals[name].prior[0]:.4g}, "
                  f"{result.intervals[name].prior[1]:.4g}])" if name in result.not_identified else "")
-              + (" (held at its start)" if name in result.held else ""))
+              + ((" (held at its start)" if result.values[name] == result.initial[name] else " (held there)")
+                 if name in result.held else ""))
     for ch, before in result.rms_initial.items():
         print(f"  rms {ch}: {before['rms']:.4g} -> {result.rms_final[ch]['rms']:.4g} {before['unit']}")
     print(f"  status {result.status}, {result.iterations} iterations, {result.sim_runs} replays, "

@@ -216,6 +216,7 @@ class FitProblem:
         self._extra: dict[bytes, np.ndarray] = {}
         self.batched, self.batch_size = bool(batched), batch_size
         self.max_replays = max_replays
+        self.reweight_above = 0.0  # fit(reweight_channels=T): the channels above T at the start are reweighed
         self.warm_start = bool(warm_start)
         self.last_positions: np.ndarray | None = None
         self.specs = tuple(specs)
@@ -578,7 +579,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         on_eval: Callable[[Evaluation], None] | None = None, stop_sigma: float | None = STOP_SIGMA,
         stop_trial_sigma: float | None = STOP_TRIAL_SIGMA, stop_rms: float | None = STOP_RMS,
         warm_start: bool = True, bounds: Mapping[str, tuple[float, float]] | None = None,
-        max_replays: int | None = None, reweight_channels: bool = False, batched: bool = False,
+        max_replays: int | None = None, reweight_channels: bool | float = False, batched: bool = False,
         batch_size: int | str | None = None, robust: str | None = DEFAULT_ROBUST_METHOD,
         stop_robust_sigma: float | None = None, stop_trial_robust: bool = False,
         nuisance: Mapping[str, float] | None = None, hold_unidentified: bool = False,
@@ -606,7 +607,12 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             Ruppert 1988, "Transformation and Weighting in Regression", ch. 3): a channel the model
             cannot follow (its whitened RMS far above the others', e.g. a card the gel lifts with a
             tack the model lacks) then cannot drive the fit, while channels at their noise level
-            keep their weight. The cost, covariance and ``reduced_chi2`` are in these units;
+            keep their weight. A number ``T`` instead of True: only the channels whose whitened RMS at the start
+            exceeds ``T`` are weighed so (the channels the model does not follow, ``thinshell sysid`` without the
+            tack layer: :data:`sysid.calibration.FOLLOWED_RMS`), and only where another channel is at or below
+            ``T`` there (one channel, or all far off at a start far from the fit, has nothing to be rebalanced
+            against); the others keep their noise level. The cost,
+            covariance and ``reduced_chi2`` are in these units;
             ``rms_initial`` / ``rms_final`` stay in noise units. The factors are in ``sigma_scale``.
         max_replays: replay budget of the whole fit (every replay counts: plain, with tangents, or a
             finite-difference column; the start is always replayed). A replay that would exceed it
@@ -757,6 +763,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 raise CalibrationError(f"the replay diverged at the start values {start}: {problem.last_failure} "
                                        "(try a smaller --dt)")
             if reweight_channels:
+                problem.reweight_above = 0.0 if reweight_channels is True else float(reweight_channels)
                 channel_scale, r0 = _reweight_start(problem, u0, r0)
             cost0, prediction0 = problem.best[0], problem.best_prediction()
             global_info = None
@@ -1026,13 +1033,18 @@ def _nuisance_jacobian(problem: FitProblem, u_best: np.ndarray, nuisance: Mappin
 
 
 def _reweight_start(problem: FitProblem, u0: np.ndarray, r0: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
-    """``fit(reweight_channels=True)``: set the model's per-channel ``sigma_scale`` from the start's
-    whitened residual ``r0`` and express what the problem holds at the start (residual, cost,
-    Jacobian) in the reweighted units. Returns ``(channel -> factor, reweighted r0)``."""
+    """``fit(reweight_channels=...)``: set the model's per-channel ``sigma_scale`` from the start's
+    whitened residual ``r0`` (the channels above ``problem.reweight_above`` only) and express what the problem
+    holds at the start (residual, cost, Jacobian) in the reweighted units. Returns ``(channel -> factor,
+    reweighted r0)``."""
     model = problem.model
     slices = model.channel_slices()
-    scale = {ch: max(1.0, float(np.sqrt(np.mean(r0[sl] ** 2)))) if sl.stop > sl.start else 1.0
-             for ch, sl in slices.items()}
+    rms = {ch: float(np.sqrt(np.mean(r0[sl] ** 2))) if sl.stop > sl.start else 1.0 for ch, sl in slices.items()}
+    floor = problem.reweight_above
+    followed = floor <= 0.0 or any(v <= floor for v in rms.values())
+    # above a floor, only beside a channel the model follows: one channel, or every channel off by a start far from
+    # the fit, has no channel to rebalance against (its weight would only widen the stops' sigmas)
+    scale = {ch: max(1.0, v) if v > floor and followed else 1.0 for ch, v in rms.items()}
     model.sigma_scale = dict(scale)
     vec = np.ones_like(r0)
     for ch, sl in slices.items():

@@ -13,7 +13,8 @@ Schema ``thinshell.sysid.fit`` version 1::
                               "interval": {"lower", "upper", "prior": [lo, hi], "identified", "open_below",
                                            "open_above", "source": "linearised"|"profile", "outside_prior",
                                            "profile": [{"delta_u", "value", "z", "delta_cost"}]} | null,
-                              "held": true where the fit held it at its start (sysid.fit.fit hold_unidentified)}},
+                              "held": true where the fit held it (no step along it) at its last accepted point
+                                      (sysid.fit.fit hold_unidentified)}},
         "correlation": {"names": [...], "matrix": [[...]]} | null,
         "covariance_u": [[...]] | null,       # Gauss-Newton (J^T W J)^-1 in the search coordinates
         "robust": {"method": "hac"|"block_bootstrap"|"hac+nuisance"|..., "lag_bins", "lag_s", "bin_s", "bins",

@@ -552,3 +552,19 @@ def test_reweighted_channels_enter_at_unit_variance_and_a_gap_channel_does_not_d
     n = {ch: model.data(ch).size for ch in model.channels}
     assert weighted.cost_initial == pytest.approx(0.5 * sum(n[ch] * min(1.0, rms0[ch] ** 2) for ch in n), rel=1e-9)
     assert abs(weighted.values[name] / true - 1.0) < abs(plain.values[name] / true - 1.0)
+    # ``reweight_channels=T`` (thinshell sysid without the tack layer: T = FOLLOWED_RMS): only the channels the model
+    # does not follow at the start (whitened RMS above T) are weighed by their gap; the others keep their noise level
+    from sysid.calibration import FOLLOWED_RMS
+
+    above = fit(model, [name], initial=start, max_replays=1, reweight_channels=FOLLOWED_RMS)
+    assert above.sigma_scale == pytest.approx({ch: r if r > FOLLOWED_RMS else 1.0 for ch, r in rms0.items()})
+    assert above.sigma_scale["wrench"] > 10.0 and min(above.sigma_scale.values()) == 1.0
+    assert above.cost_initial == pytest.approx(
+        0.5 * sum(n[ch] * (1.0 if rms0[ch] > FOLLOWED_RMS else rms0[ch] ** 2) for ch in n), rel=1e-9)
+    # a channel above T alone (no followed channel beside it) keeps its noise level: nothing to rebalance against
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lone = ObservationModel(load_evidence(press_bag), dt=DT, channels=("wrench",))
+    lone.data = with_gap
+    alone = fit(lone, [name], initial=start, max_replays=1, reweight_channels=FOLLOWED_RMS)
+    assert alone.rms_initial["wrench"]["whitened_rms"] > 10.0 and alone.sigma_scale == {"wrench": 1.0}
