@@ -62,16 +62,23 @@ def test_rows_equal_the_whole_gathers_and_read_only_the_rows():
         assert not same_vertices(rows, want) and same_vertices(want, want.copy())
 
 
+def _pressed_forming():
+    """The Forming contact set on the CPU kernels, its positions ``x`` and a start of step ``x^n`` ``(n, 3)`` m a fixed
+    0.4 eps jitter away (read-only), its sheet's vertex mask, and the generator that drew the jitter (seed 11) for the
+    steps' points."""
+    contact, x = _forming_contact("taichi-cpu")
+    rng = np.random.default_rng(11)
+    x_n = x + 0.4 * contact.eps * rng.normal(size=x.shape)
+    x_n.flags.writeable = False
+    return contact, x, x_n, sheet_mask(contact), rng
+
+
 def _forming_steps() -> list:
     """A pressed Forming contact set through two steps, a trial point of the second whose sheet moved past the
     margin (new lists searched within the step), with at each point its pairs, sides, energies, gradients and Hessian
     blocks, the friction rows at each step's start, the releases of stale sides and the remembered sides at each end;
     also the potentials made on the way."""
-    contact, x = _forming_contact("taichi-cpu")
-    rng = np.random.default_rng(11)
-    x_n = x + 0.4 * contact.eps * rng.normal(size=x.shape)
-    x_n.flags.writeable = False
-    sheet = sheet_mask(contact)
+    contact, x, x_n, sheet, rng = _pressed_forming()
     out, pots = [], []
     memory = contact.begin_step(x_n, None)
     for k in range(2):
@@ -167,11 +174,7 @@ def _forming_steps_without_releases() -> list:
     set-up made twice (the second's potentials take the first's evaluation of ``x^n``: equal pairs and sides, compared),
     its friction rows (vertices, weights, tangent bases, normals, ``lam``, ``mu``, sources), each point's energies,
     gradients, Hessian blocks, frames and distances, each end's memory."""
-    contact, x = _forming_contact("taichi-cpu")
-    rng = np.random.default_rng(11)
-    x_n = x + 0.4 * contact.eps * rng.normal(size=x.shape)
-    x_n.flags.writeable = False
-    sheet = sheet_mask(contact)
+    contact, x, x_n, sheet, rng = _pressed_forming()
     out, pots = [], []
     state_memory = None
     for k in range(2):
