@@ -216,7 +216,6 @@ class FitProblem:
         self._extra: dict[bytes, np.ndarray] = {}
         self.batched, self.batch_size = bool(batched), batch_size
         self.max_replays = max_replays
-        self.reweight_above = 0.0  # fit(reweight_channels=T): the channels above T at the start are reweighed
         self.warm_start = bool(warm_start)
         self.last_positions: np.ndarray | None = None
         self.specs = tuple(specs)
@@ -763,8 +762,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 raise CalibrationError(f"the replay diverged at the start values {start}: {problem.last_failure} "
                                        "(try a smaller --dt)")
             if reweight_channels:
-                problem.reweight_above = 0.0 if reweight_channels is True else float(reweight_channels)
-                channel_scale, r0 = _reweight_start(problem, u0, r0)
+                floor = 0.0 if reweight_channels is True else float(reweight_channels)
+                channel_scale, r0 = _reweight_start(problem, u0, r0, floor)
             cost0, prediction0 = problem.best[0], problem.best_prediction()
             global_info = None
             if global_method is not None:
@@ -1032,15 +1031,15 @@ def _nuisance_jacobian(problem: FitProblem, u_best: np.ndarray, nuisance: Mappin
     return J[:, len(problem.specs):], ext.sim_runs
 
 
-def _reweight_start(problem: FitProblem, u0: np.ndarray, r0: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
+def _reweight_start(problem: FitProblem, u0: np.ndarray, r0: np.ndarray,
+                    floor: float = 0.0) -> tuple[dict[str, float], np.ndarray]:
     """``fit(reweight_channels=...)``: set the model's per-channel ``sigma_scale`` from the start's
-    whitened residual ``r0`` (the channels above ``problem.reweight_above`` only) and express what the problem
+    whitened residual ``r0`` (the channels above ``floor`` only) and express what the problem
     holds at the start (residual, cost, Jacobian) in the reweighted units. Returns ``(channel -> factor,
     reweighted r0)``."""
     model = problem.model
     slices = model.channel_slices()
     rms = {ch: float(np.sqrt(np.mean(r0[sl] ** 2))) if sl.stop > sl.start else 1.0 for ch, sl in slices.items()}
-    floor = problem.reweight_above
     followed = floor <= 0.0 or any(v <= floor for v in rms.values())
     # above a floor, only beside a channel the model follows: one channel, or every channel off by a start far from
     # the fit, has no channel to rebalance against (its weight would only widen the stops' sigmas)
