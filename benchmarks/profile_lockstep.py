@@ -643,7 +643,39 @@ def _account_specs() -> list:
             (CopyVectors, "scalars", "account: per-copy scalars read (slopes, norms, tests)", None),
             (CopyVectors, "_extremes", "account: per-copy scalars read (slopes, norms, tests)", None),
             (CopyLineSearch, "_launch_copy_energies", "account: per-copy energies", None),
-            (ContactSet, "_candidate_pairs", "account: the candidate lists (their cover test; a build)", None)]
+            (ContactSet, "_candidate_pairs", "account: the candidate lists (their cover test; a build)", None)
+            ] + _loop_specs()
+
+
+def _loop_specs() -> list:
+    """The Newton loop's host rest split by part for ``--account`` (issue 52 item 3: what a resident Newton loop would
+    remove): the simplified Newton test's touching contacts (:class:`~sim_core.batch.simplified.SimplifiedNewtonTest`,
+    measured at every iterate), the operator's contact and friction blocks (:meth:`LockstepSolver._term_hessian`,
+    the blocks' host form where one is asked for), the operator's rest (:meth:`LockstepSolver._device_operator`'s own:
+    the element values' handles, the blocks' sets), the per-copy stopping tests and acceptances
+    (:class:`~sim_core.batch.copy_outcomes.CopyOutcomes`), the iterates' vector kernels (copies, blends, zeroed copies
+    and DoFs), the released stale sides, the device solver's copies to factorise."""
+    from sim_core.batch import lockstep, simplified
+    from sim_core.batch.copy_outcomes import CopyOutcomes
+    from sim_core.contact_set import ContactSet
+    from sim_core.ti_kernels.copy_vectors import CopyVectors
+    from sim_core.ti_kernels.pcg import VertexBlocks
+
+    active = "account: Newton: the simplified test's touching contacts (host)"
+    blocks = "account: Newton: the operator's contact and friction blocks"
+    vectors = "account: Newton: the iterates' vector kernels (copy, blend, zeroed copies and DoFs)"
+    specs = [(simplified.SimplifiedNewtonTest, "_active", active, None),
+             (simplified, "same_active_sets", active, None),
+             (lockstep.LockstepSolver, "_term_hessian", blocks, None),
+             (VertexBlocks, "_vertex_blocks", blocks, None),
+             (lockstep.LockstepSolver, "_device_operator", "account: Newton: the operator's rest", None),
+             (lockstep.LockstepSolver, "_copies_to_factorize", "account: Newton: the copies to factorise", None),
+             (CopyOutcomes, "stop_tests", "account: Newton: the per-copy tests and outcomes", None),
+             (CopyOutcomes, "accept", "account: Newton: the per-copy tests and outcomes", None),
+             (ContactSet, "release_stale_sides", "account: Newton: stale sides released", None)]
+    specs += [(CopyVectors, name, vectors, None)
+              for name in ("new", "copy", "blend", "blend_actions", "zero_copies", "copy_where", "zero_dofs")]
+    return specs
 
 
 def _count_launches(phases: _StepPhases) -> None:
