@@ -41,7 +41,10 @@ bench's: the synchronisations serialise host and device). ``--schedules dots,pan
 ``"panels"`` too (``envelope_cholesky.SUBSTITUTION``). ``--edge-edge-rows rows,takes,...`` (one for each entry of
 ``--B``) reads the contact set's edge-edge potential's pairs and sides by rows (``ListRows``) or takes every kept row on
 the host at each step's set-up (``contact_set.ListRows`` replaced by ``np.take``), set before each entry's batch is
-built. After each size a memory line: this process's GPU memory (``nvidia-smi``, as
+built. ``--simplified-compare every,whole,...`` (one for each entry of ``--B``): the device solvers' simplified Newton
+test compares the copies' touching contacts only where every open copy is ready and only until one open copy differs
+(``every``), or every ready copy's at every iterate (``whole``: ``SimplifiedNewtonTest.candidates`` without its
+``every``; the same tests made). After each size a memory line: this process's GPU memory (``nvidia-smi``, as
 ``thinshell bench batch``'s ``gpu_mib_per_copy``) and resident host memory after its steps, their growth over the size
 and per copy, and the GPU memory free. ``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's
 compiler in the profiled region).
@@ -90,6 +93,12 @@ def main() -> int:
                          "np.take of every kept row at each step's set-up: contact_set.ListRows replaced), set before "
                          "the entry's batch is built, so that both are compared in one process; with --account a size "
                          "is accounted once per name")
+    ap.add_argument("--simplified-compare", default=None, metavar="NAMES",
+                    help="Forming: for each entry of --B in turn (comma-separated) 'every' (the device solvers' "
+                         "simplified Newton test compares the copies' touching contacts only where every open copy is "
+                         "ready, and only until one open copy differs) or 'whole' (every ready copy's contacts compared "
+                         "at every iterate: SimplifiedNewtonTest.candidates without its 'every'), set before the "
+                         "entry's batch is built, so that both are compared in one process")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
     add_emulation_flag(ap)
@@ -131,8 +140,16 @@ def main() -> int:
     sizes = _sizes(args.B)
     schedules = _schedules(args.schedules, len(sizes), ap)
     rows_modes = _edge_edge_rows(args.edge_edge_rows, len(sizes), ap)
+    compares = _named(args.simplified_compare, len(sizes), ap, "--simplified-compare", ("every", "whole"))
     accounted: set = set()
-    for B, schedule, rows_mode in zip(sizes, schedules, rows_modes):
+    from sim_core.batch.simplified import SimplifiedNewtonTest
+
+    candidates = SimplifiedNewtonTest.candidates
+    for B, schedule, rows_mode, compare in zip(sizes, schedules, rows_modes, compares):
+        if compare is not None:
+            SimplifiedNewtonTest.candidates = candidates if compare == "every" else (
+                lambda test, open_, terms, x, every=False: candidates(test, open_, terms, x))
+            print(f"B={B}: the simplified test's contacts compared by {compare}", flush=True)
         if rows_mode is not None:
             import numpy as np
 
@@ -152,6 +169,7 @@ def main() -> int:
             print(f"B={B}: the envelope's schedule on CUDA {schedule}", flush=True)
         label = str(B) if schedule is None else f"{B} {schedule}"
         label = label if rows_mode is None else f"{label} {rows_mode}"
+        label = label if compare is None else f"{label} {compare}"
         sc.SolverConfig = config
         for rec in timers.values():
             rec[0], rec[1] = 0, 0.0
@@ -175,8 +193,8 @@ def main() -> int:
         memory.after(B)
         del run
         if (args.account and not args.task and B in _sizes(args.account)
-                and (B, schedule, rows_mode) not in accounted):
-            accounted.add((B, schedule, rows_mode))  # again, the device synchronised
+                and (B, schedule, rows_mode, compare) not in accounted):
+            accounted.add((B, schedule, rows_mode, compare))  # again, the device synchronised
             run = _with_config(config, orig, lambda: _FormingRun(B, args.steps + 1, backend, lockstep=True))
             phases.sync = _device_sync()
             _profile_size(run, B, args, timers, cg_iterations, phases, f"{label} (account: synchronised phases)")
@@ -593,6 +611,17 @@ def _edge_edge_rows(text, count: int, ap) -> list:
     names = [name.strip() for name in str(text).split(",")]
     if len(names) != count or not all(name in ("rows", "takes") for name in names):
         ap.error(f"--edge-edge-rows needs rows|takes for each of the {count} entries of --B; got {text!r}")
+    return names
+
+
+def _named(text, count: int, ap, flag: str, known: tuple) -> list:
+    """The names of ``flag`` (``text``, comma-separated, one of ``known`` for each of the ``count`` entries of ``--B``),
+    or ``count`` Nones without it; ``ap.error`` on a count that differs or an unknown name."""
+    if text is None:
+        return [None] * count
+    names = [name.strip() for name in str(text).split(",")]
+    if len(names) != count or not all(name in known for name in names):
+        ap.error(f"{flag} needs {'|'.join(known)} for each of the {count} entries of --B; got {text!r}")
     return names
 
 

@@ -365,10 +365,11 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             bad = open_ & ~np.isfinite(g_max)
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
-            test = simplified.candidates(open_, contact_terms + step.cand_contact, x.host)
+            # on the device a test that cannot end the step saves nothing (the envelope's time does not depend on the
+            # copies it factorises) and costs a substitution: made only where every open copy may pass (their
+            # contacts compared only until one of them is found to differ)
+            test = simplified.candidates(open_, contact_terms + step.cand_contact, x.host, every=self.pcg is not None)
             if self.pcg is not None and not np.array_equal(test, open_):
-                # on the device a test that cannot end the step saves nothing (the envelope's time does not depend on
-                # the copies it factorises) and costs a substitution: made only where every open copy may pass
                 test[:] = False
             if test.any():  # the simplified Newton test of these copies: one solve with the kept factorisation
                 residual_bar = vectors.largest_norm(self._simplified_correction(step, g, test)) / dt

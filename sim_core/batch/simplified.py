@@ -96,16 +96,51 @@ def active_sets(terms: list, x: np.ndarray) -> list[tuple] | None:
 
 
 def same_active_sets(a: list[tuple] | None, b: list[tuple] | None, copy_of_vertex: np.ndarray,
-                     copies: int) -> np.ndarray:
+                     copies: int, every: np.ndarray | None = None) -> np.ndarray:
     """Per copy whether two :func:`active_sets` results name the same touching contacts, shape ``(copies,)`` bool
     (all False when either is None or their terms differ in number or kind): the pairs of a potential that both
     results hold by the same object by their indices (the entries of each missing from the other, their copies the
     copies of their first vertices), else by their vertex rows as :func:`same_active_by_copy` compares them.
 
-    ``copy_of_vertex``: the copy of each stacked vertex, shape ``(N,)`` int."""
+    ``copy_of_vertex``: the copy of each stacked vertex, shape ``(N,)`` int.
+
+    ``every`` (bool ``(copies,)``, optional): the caller needs only whether every copy of ``every`` is the same (the
+    device solvers' test, made only where every open copy may pass): all False is returned as soon as one copy of
+    ``every`` is known to differ, the rest uncompared. Of a potential held by the same object whose index lists
+    differ, one entry of their symmetric difference comes first from their first mismatch (:func:`_first_difference`:
+    one comparison of the two ascending lists, no search); where that entry's copy is in ``every`` nothing more is
+    compared. Where every copy of ``every`` is the same the result is the one without ``every``."""
     same = np.zeros(copies, dtype=bool)
     if a is None or b is None or len(a) != len(b):
         return same
+    same[:] = True
+    for (ta, ea), (tb, eb) in zip(a, b):
+        if ta is tb and isinstance(ta, PAIR_POTENTIALS):
+            if ea.shape == eb.shape and np.array_equal(ea, eb):
+                continue
+            if every is not None and every[copy_of_vertex[np.take(ta.vertices, [_first_difference(ea, eb)],
+                                                                  axis=0)[0, 0]]]:
+                return np.zeros(copies, dtype=bool)
+            differing = np.concatenate([_missing(ea, eb), _missing(eb, ea)])
+            same[copy_of_vertex[np.take(ta.vertices, differing, axis=0)[:, 0]]] = False
+        elif not _same_rows(*_by_copy(_rows_of(ta, ea), copy_of_vertex),
+                            *_by_copy(_rows_of(tb, eb), copy_of_vertex), same):
+            return np.zeros(copies, dtype=bool)
+        if every is not None and not same[every].all():
+            return np.zeros(copies, dtype=bool)
+    return same
+
+
+def _first_difference(u: np.ndarray, v: np.ndarray) -> int:
+    """One entry of the symmetric difference of ``u`` and ``v`` (int ``(k,)`` ascending, distinct entries, not equal):
+    at their first position ``i`` where they differ, the smaller of ``u[i]`` and ``v[i]`` (every earlier entry being
+    common, it is below all of the other list's later ones), or, where one list is the other's beginning, the longer
+    one's next entry."""
+    n = min(u.size, v.size)
+    at = np.flatnonzero(u[:n] != v[:n])
+    if at.size:
+        return int(min(u[at[0]], v[at[0]]))
+    return int((u if u.size > n else v)[n])
     same[:] = True
     for (ta, ea), (tb, eb) in zip(a, b):
         if ta is tb and isinstance(ta, PAIR_POTENTIALS):
@@ -173,14 +208,18 @@ class SimplifiedNewtonTest:
             last = self._last = (x, list(terms), active_sets(terms, x))
         return last[2]
 
-    def candidates(self, open_: np.ndarray, terms: list, x: np.ndarray) -> np.ndarray:
+    def candidates(self, open_: np.ndarray, terms: list, x: np.ndarray, every: bool = False) -> np.ndarray:
         """The copies of ``open_`` ``(B,)`` to test at the iterate ``x`` ``(N, 3)`` with the contact ``terms`` there:
-        ready, with the touching contacts of their last iterate."""
+        ready, with the touching contacts of their last iterate. ``every``: the caller tests only where every copy of
+        ``open_`` is a candidate (the device solvers: a test that cannot end the step saves nothing there); then all
+        False wherever one is not, found without comparing the other copies' contacts (:func:`same_active_sets`'
+        ``every``), and otherwise the same copies."""
         ready = self.ready & open_
-        if not self.enabled or not ready.any():
+        if not self.enabled or not ready.any() or every and not np.array_equal(ready, open_):
             return np.zeros_like(ready)
         now = self._active(terms, x)
-        return ready & same_active_sets(self._active_before, now, self.copy_of_vertex, len(ready))
+        return ready & same_active_sets(self._active_before, now, self.copy_of_vertex, len(ready),
+                                        open_ if every else None)
 
     def after_direction(self, exact_stacked: bool, terms: list, x: np.ndarray) -> None:
         """Keep the touching contacts at the iterate ``x`` whose update came from the stacked exact factorisation

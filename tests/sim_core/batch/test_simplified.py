@@ -94,6 +94,44 @@ def test_the_touching_pairs_of_one_candidate_list_are_compared_by_index_as_by_th
     assert active_sets([object()], x0) is None  # not a penalty contact: no test
 
 
+def test_the_device_solvers_question_every_open_copy_the_same_is_answered_as_the_whole_comparison_answers_it():
+    """``same_active_sets(..., every=mask)``: where every copy of the mask has the same touching pairs, the whole
+    comparison's answer; where one of them differs, all False (found from one entry of the two index lists' symmetric
+    difference: ``_first_difference`` gives such an entry for lists differing anywhere, in length or not)."""
+    from sim_core.batch.simplified import _first_difference
+
+    rng = np.random.default_rng(7)
+    copies, per_copy = 6, 40
+    copy_of = np.repeat(np.arange(copies), 5)
+    triangles = np.array([[5 * c, 5 * c + 1, 5 * c + 2] for c in range(copies)])
+    pairs = np.array([[5 * c + 3 + k % 2, c] for c in range(copies) for k in range(per_copy)])  # copy c's rows together
+    vt = VertexTriangleContact(pairs, triangles, np.zeros(len(pairs)), 1e3, 0.01)
+    seen = {"some differ": 0, "every one same": 0}
+    for trial in range(300):
+        before = np.flatnonzero(rng.random(len(pairs)) < 0.3)
+        now = before.copy()
+        changed = rng.choice(copies, rng.integers(0, 3), replace=False)  # these copies' touching pairs redrawn
+        for c in changed:
+            rows = np.arange(c * per_copy, (c + 1) * per_copy)
+            now = np.union1d(now[(now < rows[0]) | (now > rows[-1])], rows[rng.random(per_copy) < 0.3])
+        if not np.array_equal(before, now):
+            u, v = (before, now) if trial % 2 else (now, before)
+            assert _first_difference(u, v) in np.setxor1d(u, v)
+        whole = same_active_sets([(vt, before)], [(vt, now)], copy_of, copies)
+        mask = rng.random(copies) < 0.5
+        got = same_active_sets([(vt, before)], [(vt, now)], copy_of, copies, every=mask)
+        if whole[mask].all():
+            seen["every one same"] += 1
+            np.testing.assert_array_equal(got, whole)
+        else:
+            seen["some differ"] += 1
+            assert not got.any()
+    assert min(seen.values()) > 50  # both answers drawn often
+    # one list the other's beginning (a touching pair let go at the end, or gained)
+    assert _first_difference(np.array([1, 4, 9]), np.array([1, 4])) == 9
+    assert _first_difference(np.array([1, 4]), np.array([1, 4, 9, 12])) == 9
+
+
 @pytest.mark.parametrize("config", [SolverConfig(lockstep=True),
                                     SolverConfig(lockstep=True, backend="taichi-cpu", linear_solver="envelope")],
                          ids=["direct", "envelope"])
