@@ -96,9 +96,9 @@ def main() -> int:
     ap.add_argument("--simplified-compare", default=None, metavar="NAMES",
                     help="Forming: for each entry of --B in turn (comma-separated) 'every' (the device solvers' "
                          "simplified Newton test compares the copies' touching contacts only where every open copy is "
-                         "ready, and only until one open copy differs) or 'whole' (every ready copy's contacts compared "
-                         "at every iterate: SimplifiedNewtonTest.candidates without its 'every'), set before the "
-                         "entry's batch is built, so that both are compared in one process")
+                         "ready, and only until one open copy differs) or 'whole' (every ready copy's contacts "
+                         "compared at every iterate: SimplifiedNewtonTest.candidates without its 'every'), set before "
+                         "the entry's batch is built, so that both are compared in one process")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
     add_emulation_flag(ap)
