@@ -141,18 +141,6 @@ def _first_difference(u: np.ndarray, v: np.ndarray) -> int:
     if at.size:
         return int(min(u[at[0]], v[at[0]]))
     return int((u if u.size > n else v)[n])
-    same[:] = True
-    for (ta, ea), (tb, eb) in zip(a, b):
-        if ta is tb and isinstance(ta, PAIR_POTENTIALS):
-            if ea.shape == eb.shape and np.array_equal(ea, eb):
-                continue
-            differing = np.concatenate([_missing(ea, eb), _missing(eb, ea)])
-            same[copy_of_vertex[np.take(ta.vertices, differing, axis=0)[:, 0]]] = False
-            continue
-        if not _same_rows(*_by_copy(_rows_of(ta, ea), copy_of_vertex), *_by_copy(_rows_of(tb, eb), copy_of_vertex),
-                          same):
-            return np.zeros(copies, dtype=bool)
-    return same
 
 
 def _missing(u: np.ndarray, v: np.ndarray) -> np.ndarray:
