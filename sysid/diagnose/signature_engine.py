@@ -62,6 +62,7 @@ from sysid.diagnose.signatures.sensor import apply_force_bias, free_gel_rows, le
 from sysid.diagnose.signatures.timing import delayed, first_order, smoothed_replay, timing_fits, timing_signal
 from sysid.evidence import load_evidence
 from sysid.observation import ObservationModel
+from sysid.wrench_check import check_wrench
 
 ENGINE_NAME = "signatures"
 
@@ -222,6 +223,9 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
                              arch=settings.arch)
     params = tuple(settings.calibration_params) if settings.calibrate else ()
     notes: list[str] = []
+    wrench = check_wrench(evidence) if "wrench" in model.channels else None
+    if wrench is not None and wrench.tripped:  # before the probe's fork: its replays are weighed the same way
+        model.row_mask = {"wrench": ~wrench.against}
     if settings.calibration_drive and settings.calibrate:
         # the drive first (closed form, as the calibration fits it again), so that a forked probe replays through it
         drive = fit_drive(model)

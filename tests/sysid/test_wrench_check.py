@@ -100,3 +100,25 @@ def test_thinshell_sysid_checks_the_wrench_by_default():
 
     assert FitOptions().wrench_check and fit_options(build_parser().parse_args(["bag"])).wrench_check
     assert not fit_options(build_parser().parse_args(["bag", "--no-wrench-check"])).wrench_check
+
+
+def test_thinshell_diagnose_leaves_the_same_rows_out_of_its_calibration(monkeypatch, s109):
+    """``thinshell diagnose``'s signature stage (:func:`sysid.diagnose.signature_engine.prepare`) hands its calibration,
+    and so every later replay and fit of the recording, the model with the contradicting wrench rows left out, as its
+    report's note says; a recording whose wrench agrees with its markers keeps every row."""
+    from sysid.diagnose import signature_engine
+    from sim_core.errors import CalibrationError
+
+    seen = {}
+
+    def calibrate(model, params, **_):
+        seen[model.evidence.source.bag_path.name] = None if model.row_mask is None else model.row_mask.get("wrench")
+        raise CalibrationError("stopped here: the test reads what the calibration is handed")
+
+    monkeypatch.setattr(signature_engine, "calibrate", calibrate)
+    settings = signature_engine.SignatureSettings()
+    s109_prepared = signature_engine.prepare(reference_bag("nominal_s109"), settings)
+    np.testing.assert_array_equal(seen["nominal_s109"], ~check_wrench(s109).against)
+    assert any("no calibrated replay" in n for n in s109_prepared.notes)
+    signature_engine.prepare(reference_bag("nominal_s101"), settings)
+    assert seen["nominal_s101"] is None
