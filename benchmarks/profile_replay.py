@@ -13,7 +13,11 @@ is the fit's joint replay (:func:`sysid.replay_drive.drive_sensitivities`, or
 Printed: CPU seconds of the replay and per step; step evaluations (the drive's secant evaluations), Newton
 iterations, factorisations and PARDISO calls per phase (11: symbolic analysis, 22: numerical factorisation,
 33: solve) per step; Taichi kernel launches per step; the CPU seconds of the parts (assembly, linear
-solves, line search, contact search, sensor observation, tangents); and the ``--top`` functions by own time.
+solves, line search, contact search, sensor observation, tangents); for the steps without and with a load on the
+sensor (a plain replay) their CPU, Newton iterations, PARDISO calls by phase and CPU ms a step, the union pattern's
+rebuilds (:mod:`sim_core.dynamic_slots`: each one a new pattern, so a new symbolic analysis), and per body the median
+over the steps of its largest Newton update after the step's first (m/s: a body whose block has converged to round-off
+is still solved every iteration); and the ``--top`` functions by own time.
 """
 
 from __future__ import annotations
@@ -82,6 +86,31 @@ def _pardiso_counter(counts: collections.Counter):
     return lambda: setattr(PardisoHandle, "_call", original)
 
 
+def _step_counter(counts: collections.Counter, updates: dict):
+    """Count the union pattern's rebuilds and record each body's largest Newton update (m/s) of each iteration
+    (``updates``: body name -> list of per-step lists); returns the wrappers' undo."""
+    from sim_core.dynamic_slots import DynamicMerge
+    from sim_core.solver import NewtonSolver
+
+    rebuild, direction = DynamicMerge._rebuild, NewtonSolver._newton_direction
+
+    def counted_rebuild(self, *args):
+        counts["union rebuilds"] += 1
+        return rebuild(self, *args)
+
+    def recorded_direction(self, step, x, g, contact_terms, it, info):
+        result = direction(self, step, x, g, contact_terms, it, info)
+        d3 = result[0].reshape(-1, 3)
+        for body in self.model.bodies.values():
+            if body.vertex_stop > body.vertex_start:
+                per_step = updates.setdefault(body.name, [[]])
+                per_step[-1].append(float(np.abs(d3[body.vertex_start:body.vertex_stop]).max()) / step.dt)
+        return result
+
+    DynamicMerge._rebuild, NewtonSolver._newton_direction = counted_rebuild, recorded_direction
+    return lambda: (setattr(DynamicMerge, "_rebuild", rebuild), setattr(NewtonSolver, "_newton_direction", direction))
+
+
 def _launch_counter(counts: collections.Counter):
     from sim_core.ti_kernels import launch
 
@@ -115,12 +144,22 @@ def main() -> None:
     params = {name: model.parameter_value(name) for name in DEFAULT_PARAMETERS}
 
     step_cpu = [time.process_time()]
+    step_counts: list[collections.Counter] = []  # the counters at the start and after each step of a plain replay
+    updates: dict[str, list[list[float]]] = {}  # body -> per step, its largest Newton update of each iteration
+
+    def stepped(k, K):
+        step_cpu.append(time.process_time())
+        step_counts.append(collections.Counter(counts))
+        for per_step in updates.values():
+            per_step.append([])
 
     def replay():
         if not opts.tangents:
             step_cpu[1:] = []
+            step_counts[:] = [collections.Counter(counts)]
+            updates.clear()
             step_cpu[0] = time.process_time()
-            return model.simulate(params, on_step=lambda k, K: step_cpu.append(time.process_time()))
+            return model.simulate(params, on_step=stepped)
         sim = model.prepare(params)
         if math.isfinite(model.drive_stiffness):
             drive_sensitivities(model, sim, list(params))
@@ -128,9 +167,9 @@ def main() -> None:
             rollout_sensitivities(sim, model.controls_list(), list(params), contact_force=True)
         return sim
 
-    replay()  # kernels compiled or loaded; caches warm
     counts: collections.Counter = collections.Counter()
-    undo = [_pardiso_counter(counts), _launch_counter(counts)]
+    replay()  # kernels compiled or loaded; caches warm
+    undo = [_pardiso_counter(counts), _launch_counter(counts), _step_counter(counts, updates)]
     profile = cProfile.Profile(time.process_time)
     cpus = []
     for _ in range(max(opts.repeat, 1)):
@@ -141,9 +180,12 @@ def main() -> None:
         profile.disable()
         cpu, wall = time.process_time() - c0, time.perf_counter() - w0
         cpus.append(cpu)
-    counts = collections.Counter({k: v / len(cpus) for k, v in counts.items()})
     for u in undo:
         u()
+    if not opts.tangents:  # the last replay's steps: with and without a load on the sensor
+        _print_by_step(np.asarray(result.wrench), np.diff(np.asarray(step_cpu)), step_counts, updates,
+                       "" if opts.no_profile else " (profiled)")
+    counts = collections.Counter({k: v / len(cpus) for k, v in counts.items()})
     sim = model.simulation() if opts.tangents else None
     totals = (sim.step_totals if sim is not None else result.step_totals)
     K = model.step_count
@@ -177,15 +219,36 @@ def main() -> None:
     for part, (fragment, fname) in PARTS.items():
         ct = sum(v[3] for (file, _, name), v in raw.items() if file.endswith(fragment) and name == fname)
         print(f"  {part:50s} {ct:8.2f} s  {1e3 * ct / K:7.2f} ms a step")
-    if not opts.tangents:  # CPU a step (profiled) of the steps with and without a load on the sensor
-        per_step = np.diff(np.asarray(step_cpu))
-        loaded = np.linalg.norm(np.asarray(result.wrench)[1:, :3], axis=1) > 0.0
-        for name, mask in (("without contact", ~loaded), ("in contact", loaded)):
-            if mask.any():
-                print(f"steps {name}: {int(mask.sum())}, CPU median {1e3 * np.median(per_step[mask]):.1f} ms, "
-                      f"mean {1e3 * per_step[mask].mean():.1f} ms (profiled)")
     if opts.top:
         stats.sort_stats("tottime").print_stats(opts.top)
+
+
+def _print_by_step(wrench: np.ndarray, per_step: np.ndarray, step_counts: list[collections.Counter],
+                   updates: dict[str, list[list[float]]], note: str) -> None:
+    """Print the steps without and with a load on the sensor (``wrench`` ``(K + 1, 6)``, the replay's): their CPU
+    (``per_step`` s ``(K,)``), Newton iterations, PARDISO calls and CPU by phase and union rebuilds a step
+    (``step_counts``: the counters at the replay's start and after each step), and per body the median over the
+    steps of its largest Newton update after the step's first iteration (m/s; ``updates``)."""
+    loaded = np.linalg.norm(wrench[1:, :3], axis=1) > 0.0
+    deltas = [after - before for before, after in zip(step_counts[:-1], step_counts[1:])]
+    keys = sorted(k for k in set().union(*deltas) if k.startswith("type 2 phase"))
+    for name, mask in (("without contact", ~loaded), ("in contact", loaded)):
+        if not mask.any():
+            continue
+        rows = [d for d, m in zip(deltas, mask) if m]
+        n = len(rows)
+        iterations = [len(next(iter(updates.values()))[k]) for k in np.flatnonzero(mask)] if updates else [0]
+        print(f"steps {name}: {n}, CPU median {1e3 * np.median(per_step[mask]):.1f} ms, mean "
+              f"{1e3 * per_step[mask].mean():.1f} ms{note}; Newton directions {np.mean(iterations):.2f} a step")
+        phases = ", ".join(f"phase {k.split()[-1]} {sum(r[k] for r in rows) / n:.2f} "
+                           f"({1e3 * sum(r['cpu ' + k] for r in rows) / n:.1f} ms)" for k in keys)
+        rebuilds = sum(r["union rebuilds"] for r in rows) / n
+        print(f"  PARDISO Cholesky a step: {phases}; union pattern rebuilds {rebuilds:.2f}")
+        for body, per in updates.items():
+            later = [max(per[k][1:]) for k in np.flatnonzero(mask) if len(per[k]) > 1]
+            if later:
+                print(f"  {body}: largest Newton update after the first iteration, median over the steps "
+                      f"{np.median(later):.2e} m/s ({len(later)} steps with more than one)")
 
 
 if __name__ == "__main__":

@@ -207,7 +207,9 @@ class NewtonSolver:
                                   f"got shape {guess.shape}" + ("" if guess.shape != state_in.x.shape else " with NaN/inf"))
         t0 = time.perf_counter()
         joint = control.compression is not None  # a series spring's compression among the unknowns
-        sleeping = self.config.sleeping and guess is None and self.step_hook is None and not joint
+        # a guess's positions of a sleeping body are replaced by its held ones (_set_up_step: its DoFs are fixed); a
+        # joint step's compression ties the driven base only, which never sleeps (sleeping_eligible)
+        sleeping = self.config.sleeping and self.step_hook is None
         woken = sorted(set(self._woken_by_reset) | set([] if sleeping else self._sleep.wake_all()))
         self._woken_by_reset = ()
         repeat = self.config.repeat_fixed_points and guess is None and self.step_hook is None and not joint

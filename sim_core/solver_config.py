@@ -149,9 +149,13 @@ class SolverConfig:
             by its sub-threshold Newton updates only, so the trajectories differ by about
             ``sleep_velocity * dt`` per step it sleeps (tests/sim_core/test_sleeping.py: below 1e-9 m
             on the bundled scene with the pad pressing near, then onto, the card).
-            Reported in ``StepInfo.sleeping`` / ``woken``. Off by default; the sim node turns it on. Not
-            with a position guess or a step hook (the step solves every body), nor for gradients:
-            a sleeping step's ``StepRecord`` holds the body as Dirichlet and lacks its elastic terms
+            Reported in ``StepInfo.sleeping`` / ``woken``. Off by default; the sim node and the plain
+            replays of recordings (:meth:`sysid.observation.ObservationModel.simulate`) turn it on. With a
+            position guess (``Control.position_guess``) the sleeping bodies keep their held positions and
+            the guess is taken for the others; with a series spring's compression among the unknowns
+            (``Control.compression``) the driven base, which never sleeps, is tied to it as without
+            sleepers. Not with a step hook (the step solves every body), nor for gradients: a sleeping
+            step's ``StepRecord`` holds the body as Dirichlet and lacks its elastic terms
             (:func:`sim_core.adjoint.rollout_step` refuses it), nor with ``lockstep``.
         sleep_velocity: the rest threshold of ``sleeping``, m/s (> 0; 1e-7 m/s = 0.5 nm per 5 ms step).
         carried_start: start each step's Newton iterations with the free vertices of every solid an

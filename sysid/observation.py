@@ -92,6 +92,15 @@ by little but inertia and a saturated friction, and such a jump grows step by st
 slope gives +3. Solved to 1e-7 m/s the same pair differs by 2e-5 / 1.1e-4 (markers / wrench, linear in the step), and
 the cost is converged to 1e-6 of itself (docs/benchmarks_log.md, session 55, s55-49rest)."""
 
+REPLAY_SLEEPING = True
+"""Whether a plain replay (:meth:`ObservationModel.simulate`) lets a body at rest that nothing moving can reach sleep
+(``SolverConfig.sleeping``, :mod:`sim_core.sleeping`): on. The card lying on the table while the pad is in the air (the
+approach, and on a lift after the release) is otherwise solved at every Newton iteration for an update of ~1e-15 m/s;
+asleep, its DoFs are held and its elastic, contact and friction terms are not evaluated, and the replay moves by less
+than ``sleep_velocity * dt`` a step it sleeps (1e-9 m; nominal_s109's whole replay by 2.8e-17 m, in 357 of its 472
+steps asleep, CPU 16.0 -> 12.0 s: docs/benchmarks_log.md, session 64, 64step). The tangents' replays
+(:func:`sysid.replay_drive.drive_sensitivities`) keep every body awake: a sleeping step's record is not differentiable."""
+
 REPLAY_APPLY_LAST_UPDATE = False
 """Whether a replay step ends with its last Newton update applied (``SolverConfig.apply_last_update``): off.
 
@@ -577,7 +586,8 @@ class ObservationModel:
         """Replay the recording with parameter values ``params`` and observe every step.
 
         Each step's Newton solve starts from :attr:`warm_start` when it is set; through a series drive
-        (:meth:`set_drive_stiffness`) for the spring's compression too (counts in ``SimTrace.drive``).
+        (:meth:`set_drive_stiffness`) for the spring's compression too (counts in ``SimTrace.drive``). A body at rest
+        that nothing moving can reach sleeps (:data:`REPLAY_SLEEPING`).
 
         Args:
             params: global parameter name -> value (``Model.set_parameter`` names); others keep
@@ -614,18 +624,24 @@ class ObservationModel:
         positions = [sim.state.x.copy()] if keep_positions else None
         states = [sim.state.copy()] if keep_states else None
         drive = self.replay_drive()
-        for k in range(start + 1, K + 1):
-            if drive is None:
-                sim.step(self.control(k, guess))
-            else:
-                drive.step(sim, self.control(k, guess), k)
-            obs.append(self.observe_step(sim))
-            if positions is not None:
-                positions.append(sim.state.x.copy())
-            if states is not None:
-                states.append(sim.state.copy())
-            if on_step is not None:
-                on_step(k, K)
+        config = sim.solver.config
+        previous = config.sleeping  # a plain replay differentiates no step record (REPLAY_SLEEPING)
+        config.sleeping = previous or (REPLAY_SLEEPING and not config.lockstep)
+        try:
+            for k in range(start + 1, K + 1):
+                if drive is None:
+                    sim.step(self.control(k, guess))
+                else:
+                    drive.step(sim, self.control(k, guess), k)
+                obs.append(self.observe_step(sim))
+                if positions is not None:
+                    positions.append(sim.state.x.copy())
+                if states is not None:
+                    states.append(sim.state.copy())
+                if on_step is not None:
+                    on_step(k, K)
+        finally:
+            config.sleeping = previous
         trace = self.trace_from(obs, time.perf_counter() - t_start, None if positions is None else np.stack(positions))
         trace = dataclasses.replace(trace, step_totals=dataclasses.replace(sim.step_totals),
                                     drive=None if drive is None else drive.summary())

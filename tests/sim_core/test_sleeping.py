@@ -138,7 +138,7 @@ def _asleep_sim() -> Simulation:
     return sim
 
 
-def test_changed_inputs_or_state_wake_the_card():
+def test_changed_inputs_or_state_wake_the_card_and_a_guess_keeps_it_held():
     sim = _asleep_sim()
     assert sim.step().sleeping == ("sheet",)
     sim.set_parameter("sheet.bending_stiffness", sim.get_parameter("sheet.bending_stiffness") * 1.01)
@@ -155,9 +155,12 @@ def test_changed_inputs_or_state_wake_the_card():
     assert sim.step().woken == ("sheet",)
 
     sim = _asleep_sim()
-    control = Control(position_guess=sim.state.x.copy())  # a guess solves every body
-    info = sim.step(control)
-    assert info.woken == ("sheet",) and not info.sleeping
+    held = sim.state.x.copy()
+    guess = held.copy()
+    guess[_sheet(sim).start + 20, 2] += 1e-6  # a guess elsewhere for the sleeping card: its held positions stand
+    info = sim.step(Control(position_guess=guess))
+    assert info.sleeping == ("sheet",) and not info.woken
+    assert np.array_equal(sim.state.x[_sheet(sim)], held[_sheet(sim)])
 
     sim = _asleep_sim()
     sim.reset()
