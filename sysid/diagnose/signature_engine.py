@@ -117,8 +117,10 @@ class SignatureSettings:
             carried rows and the tack margin's null decide; a press-slide without carried rows makes no replay and
             keeps the probe's fork), so the signatures are read against a replay that carries the card (without
             it nominal_s109's pixels are 3.58 after calibration); False (the default): a lift's card stays on the
-            table. Not yet the default: the nine reference recordings' diagnoses with it are not measured (plastic_s102
-            and damped_s104 name ``adhesion`` beside their effect without it, tests/sysid/diagnose/test_end_to_end.py).
+            table. Not the default: on the reference recordings it takes nominal_s109's pixels to 1.62 and plastic_s102's
+            diagnosis to its plasticity alone, but damped_s104 still names ``adhesion`` beside its damping, and a tack made
+            nominal wherever the card rises with the gel would leave a concealed adhesion nothing to be named by
+            (docs/benchmarks_log.md, session 64, lead).
     """
 
     dt: float = 0.01
